@@ -1,0 +1,1 @@
+"""Pure numpy core of the Cycles adaptive add-on (no bpy import anywhere here)."""

@@ -1,0 +1,110 @@
+"""What every method returns, and the shared sample-allocation helpers.
+
+A method module in ``core/`` (``core/var.py``, ``core/awr.py``, ``core/lp.py``,
+``core/rhf.py``) exposes:
+
+``PASSES``
+    tuple of feature pass names it reads (subset of ``buffers.FEATURE_CHANNELS``).
+``Params``
+    a dataclass of its parameters with the paper's defaults.  Each field has
+    ``metadata={"help": "...what it trades...", "min": .., "max": ..}``; the CLI and
+    the panel are generated from it.
+``reconstruct(buf: Buffers, params) -> MethodResult``
+    the final image from the accumulated samples.
+``sample_map(buf, result, budget, params, state) -> (H, W) int64``
+    new samples per pixel for the next iteration; sums to ``budget`` (ties and
+    rounding may leave it off by at most a few samples).  ``state`` is a dict the
+    loop keeps between iterations for the method's own use (e.g. the var
+    sampler's threshold tau).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field, fields
+
+import numpy as np
+
+
+@dataclass
+class MethodResult:
+    """image : (H, W, 3) float64 reconstructed image.
+    error : (H, W) float64 estimated per-pixel squared error of ``image``
+        (absolute, averaged over RGB).
+    info : dict of scalar diagnostics (e.g. LP's centre-pixel fraction).
+    """
+
+    image: np.ndarray
+    error: np.ndarray
+    info: dict = field(default_factory=dict)
+
+
+def relative_error(error: np.ndarray, image: np.ndarray, eps: float = 1e-3) -> np.ndarray:
+    """Relative squared error ``error / (lum(image)^2 + eps)`` (LP Sec. 5.2).
+
+    error : (H, W), image : (H, W, 3) -> (H, W) finite, >= 0.
+    """
+    lum = np.asarray(image, np.float64) @ np.array([0.2126, 0.7152, 0.0722])
+    lum = np.where(np.isfinite(lum), lum, 0.0)
+    e = np.where(np.isfinite(error), np.maximum(error, 0.0), 0.0)
+    return e / (lum * lum + eps)
+
+
+def allocate(weights: np.ndarray, budget: int, cap: np.ndarray | None = None) -> np.ndarray:
+    """Integer counts proportional to ``weights`` summing exactly to ``budget``.
+
+    Largest-remainder rounding.  Non-finite or negative weights count as zero;
+    all-zero weights fall back to uniform.  ``cap`` (optional, (H, W)) bounds
+    each pixel's count; the excess is redistributed to uncapped pixels.
+
+    weights : (H, W) -> (H, W) int64
+    """
+    w = np.asarray(weights, np.float64)
+    w = np.where(np.isfinite(w) & (w > 0), w, 0.0)
+    budget = int(max(budget, 0))
+    out = np.zeros(w.shape, np.int64)
+    if budget == 0 or w.size == 0:
+        return out
+    cap_arr = None if cap is None else np.broadcast_to(np.asarray(cap, np.int64), w.shape)
+    if cap_arr is not None:
+        budget = min(budget, int(cap_arr.sum()))
+    remaining = budget
+    active = np.ones(w.shape, bool) if cap_arr is None else cap_arr > 0
+    for _ in range(64):
+        if remaining <= 0 or not active.any():
+            break
+        ww = np.where(active, w, 0.0)
+        if ww.sum() <= 0:
+            ww = active.astype(np.float64)
+        share = ww / ww.sum() * remaining
+        base = np.floor(share).astype(np.int64)
+        rest = remaining - int(base.sum())
+        if rest > 0:
+            frac = (share - base).ravel()
+            idx = np.argpartition(-frac, rest - 1)[:rest] if rest < frac.size else np.arange(frac.size)
+            base.ravel()[idx] += 1
+        add = base
+        if cap_arr is not None:
+            add = np.minimum(add, cap_arr - out)
+        out += add
+        remaining -= int(add.sum())
+        if cap_arr is not None:
+            active = out < cap_arr
+        else:
+            break
+    return out
+
+
+def params_from_dict(cls, values: dict | None):
+    """Build a ``Params`` dataclass from a dict, ignoring unknown keys, and
+    checking each value against the field's ``min``/``max`` metadata."""
+    values = dict(values or {})
+    kwargs = {}
+    for f in fields(cls):
+        if f.name in values and values[f.name] is not None:
+            v = values[f.name]
+            lo, hi = f.metadata.get("min"), f.metadata.get("max")
+            if isinstance(v, (int, float)) and not isinstance(v, bool):
+                if lo is not None and v < lo or hi is not None and v > hi:
+                    raise ValueError(f"{cls.__module__.split('.')[-1]} parameter {f.name}={v} "
+                                     f"outside [{lo}, {hi}]")
+            kwargs[f.name] = v
+    return cls(**kwargs)
