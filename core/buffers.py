@@ -40,6 +40,7 @@ FEATURE_CHANNELS = {
     "glossy": 3,
     "transmission": 3,
     "object_index": 1,
+    "alpha": 1,
 }
 
 #: Luminance weights (Rec. 709), used for relative errors and the var sampler.

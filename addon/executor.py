@@ -1,0 +1,296 @@
+"""Cycles executor: renders region tasks with border + crop + sample subsets.
+
+Every setting touched is recorded first and restored on exit (also after an
+error or a cancel), so the user's scene comes back exactly as it was.
+
+Version paths (DESIGN.md, checked facts):
+- Blender 4.4+: ``cycles.use_sample_subset``, ``sample_offset``,
+  ``sample_subset_length``; ``cycles.samples`` must hold offset + length or the
+  subset is cut short.
+- Blender 4.2 / 4.3: only ``cycles.sample_offset``; ``cycles.samples`` is the
+  number of samples rendered from that offset.
+- Blender 5.0: ``image_settings.media_type = 'MULTI_LAYER_IMAGE'`` must be set
+  before ``file_format = 'OPEN_EXR_MULTILAYER'`` (and ``'IMAGE'`` before PNG).
+"""
+from __future__ import annotations
+
+import os
+import shutil
+import tempfile
+
+import bpy
+import numpy as np
+
+from ..core import io as imageio
+
+#: feature name -> (EXR pass names summed, how to enable it)
+PASS_SOURCES = {
+    "albedo": (("Denoising Albedo",), "denoising"),
+    "normal": (("Denoising Normal",), "denoising"),
+    "depth": (("Denoising Depth",), "denoising"),
+    "position": (("Position",), "use_pass_position"),
+    "vector": (("Vector",), "use_pass_vector"),
+    "object_index": (("IndexOB",), "use_pass_object_index"),
+    "glossy": (("GlossDir", "GlossInd"), ("use_pass_glossy_direct", "use_pass_glossy_indirect")),
+    "transmission": (("TransDir", "TransInd"),
+                     ("use_pass_transmission_direct", "use_pass_transmission_indirect")),
+}
+
+
+class SceneError(Exception):
+    """The scene cannot be rendered as asked; the message says why."""
+
+
+def version() -> tuple:
+    return tuple(bpy.app.version)
+
+
+def check_scene(scene, view_layer=None) -> None:
+    """Raise SceneError for a scene we cannot render (no silent fixes)."""
+    if scene.render.engine != "CYCLES":
+        raise SceneError(f"scene {scene.name!r} uses the {scene.render.engine} engine; "
+                         "set Render Engine to Cycles (the add-on does not switch it for you)")
+    if scene.camera is None:
+        raise SceneError(f"scene {scene.name!r} has no active camera")
+    w, h = full_size(scene)
+    if w < 1 or h < 1:
+        raise SceneError(f"resolution {w}x{h} is empty")
+    if scene.render.use_border:
+        x0, y0, x1, y1 = border_pixels(scene)
+        if x1 <= x0 or y1 <= y0:
+            raise SceneError("the render border lies outside the frame or is empty "
+                             f"(min {scene.render.border_min_x:.3f},{scene.render.border_min_y:.3f} "
+                             f"max {scene.render.border_max_x:.3f},{scene.render.border_max_y:.3f})")
+    if view_layer is not None and not view_layer.use:
+        raise SceneError(f"view layer {view_layer.name!r} is disabled for rendering")
+
+
+def full_size(scene) -> tuple:
+    """(width, height) in pixels after the resolution percentage (Blender's rule)."""
+    r = scene.render
+    return (r.resolution_x * r.resolution_percentage) // 100, \
+           (r.resolution_y * r.resolution_percentage) // 100
+
+
+def border_pixels(scene) -> tuple:
+    """The scene's own render border as a pixel rectangle (x0, y0, x1, y1),
+    top-left origin, clamped to the frame; the full frame when no border."""
+    w, h = full_size(scene)
+    r = scene.render
+    if not r.use_border:
+        return 0, 0, w, h
+    cl = lambda v: min(max(v, 0.0), 1.0)
+    x0, x1 = int(round(cl(r.border_min_x) * w)), int(round(cl(r.border_max_x) * w))
+    yb0, yb1 = int(round(cl(r.border_min_y) * h)), int(round(cl(r.border_max_y) * h))
+    return x0, h - yb1, x1, h - yb0
+
+
+class SettingsGuard:
+    """Record attribute values, set new ones, restore them all on exit."""
+
+    def __init__(self):
+        self._saved = []
+
+    def set(self, obj, attr, value):
+        if not hasattr(obj, attr):
+            return False
+        self._saved.append((obj, attr, getattr(obj, attr)))
+        if getattr(obj, attr) != value:
+            setattr(obj, attr, value)
+        return True
+
+    def restore(self):
+        for obj, attr, value in reversed(self._saved):
+            try:
+                if getattr(obj, attr) != value:
+                    setattr(obj, attr, value)
+            except (AttributeError, TypeError, ReferenceError):
+                pass
+        self._saved.clear()
+
+
+def set_exr_output(guard: SettingsGuard, settings) -> None:
+    """Multilayer 32-bit EXR output, on every supported version."""
+    if hasattr(settings, "media_type"):  # Blender 5.0
+        guard.set(settings, "media_type", "MULTI_LAYER_IMAGE")
+    guard.set(settings, "file_format", "OPEN_EXR_MULTILAYER")
+    guard.set(settings, "color_depth", "32")
+    guard.set(settings, "exr_codec", "ZIP")
+
+
+class CyclesExecutor:
+    """Render RegionTasks of one scene / view layer / frame with Cycles.
+
+    Use as a context manager: entering configures the scene, leaving restores
+    it.  Pixel coordinates of tasks are relative to the image domain, which is
+    the scene's own border when it has one (the add-on renders only what the
+    user would render), else the full frame.
+    """
+
+    def __init__(self, scene, view_layer, features=(), seed: int | None = None, tmpdir=None):
+        check_scene(scene, view_layer)
+        self.scene = scene
+        self.view_layer = view_layer
+        self.features = tuple(f for f in features if f != "alpha")
+        for f in self.features:
+            if f not in PASS_SOURCES:
+                raise SceneError(f"unknown pass {f!r}")
+        if "vector" in self.features and scene.render.use_motion_blur:
+            raise SceneError("the Vector pass is not available with motion blur on")
+        self.seed = seed
+        self.full_w, self.full_h = full_size(scene)
+        self.domain = border_pixels(scene)
+        self.user_crop = bool(scene.render.use_border and scene.render.use_crop_to_border)
+        x0, y0, x1, y1 = self.domain
+        self.size = (y1 - y0, x1 - x0)
+        self._own_tmp = tmpdir is None
+        self.tmpdir = tmpdir or tempfile.mkdtemp(prefix="cycles-adaptive-")
+        self.guard = SettingsGuard()
+        self.renders = 0
+
+    # -------------------------------------------------------------- lifecycle
+    def __enter__(self):
+        try:
+            self._configure()
+        except BaseException:
+            self.close()
+            raise
+        return self
+
+    def __exit__(self, *exc):
+        self.close()
+        return False
+
+    def close(self):
+        self.guard.restore()
+        frame = getattr(self, "_frame", None)
+        if frame is not None and self.scene.frame_current != frame:
+            self.scene.frame_set(frame)
+        if self._own_tmp:
+            shutil.rmtree(self.tmpdir, ignore_errors=True)
+
+    def _configure(self):
+        g, s = self.guard, self.scene
+        r, c, vl = s.render, s.cycles, self.view_layer
+        g.set(r, "use_compositing", False)
+        g.set(r, "use_sequencer", False)
+        g.set(r, "use_persistent_data", True)
+        g.set(r, "use_single_layer", True)
+        g.set(r, "use_border", True)
+        g.set(r, "use_crop_to_border", True)
+        for attr in ("border_min_x", "border_max_x", "border_min_y", "border_max_y"):
+            g.set(r, attr, getattr(r, attr))
+        g.set(r, "filepath", r.filepath)
+        g.set(r, "use_file_extension", True)
+        set_exr_output(g, r.image_settings)
+        g.set(c, "use_adaptive_sampling", False)
+        g.set(c, "use_denoising", False)
+        g.set(c, "time_limit", 0.0)
+        if self.seed is not None:
+            g.set(c, "seed", int(self.seed))
+            g.set(c, "use_animated_seed", False)
+        g.set(c, "samples", c.samples)
+        g.set(c, "sample_offset", c.sample_offset)
+        if hasattr(c, "use_sample_subset"):
+            g.set(c, "use_sample_subset", True)
+            g.set(c, "sample_subset_length", c.sample_subset_length)
+        self._frame = s.frame_current
+        if bpy.context.window is not None and bpy.context.view_layer != vl:
+            g.set(bpy.context.window, "view_layer", vl)
+        self._protect_render_result()
+        g.set(vl, "use_pass_combined", True)
+        need_denoise = any(PASS_SOURCES[f][1] == "denoising" for f in self.features)
+        g.set(vl.cycles, "denoising_store_passes", need_denoise)
+        for f in self.features:
+            enable = PASS_SOURCES[f][1]
+            if enable == "denoising":
+                continue
+            for attr in (enable if isinstance(enable, tuple) else (enable,)):
+                g.set(vl, attr, True)
+
+    def _protect_render_result(self):
+        """Render into a slot of our own so the user's last render survives;
+        the active slot is restored on exit."""
+        rr = bpy.data.images.get("Render Result")
+        slots = getattr(rr, "render_slots", None) if rr is not None else None
+        if not slots:
+            return
+        idx = next((i for i, sl in enumerate(slots) if sl.name == "Cycles Adaptive"), None)
+        if idx is None:
+            slots.new(name="Cycles Adaptive")
+            idx = len(slots) - 1
+        self.guard.set(slots, "active_index", idx)
+
+    # ----------------------------------------------------------------- render
+    def render(self, task):
+        """Render one task; returns (rgba (h, w, 4) float64, features dict)."""
+        s, r, c = self.scene, self.scene.render, self.scene.cycles
+        if s.frame_current != task.frame:
+            s.frame_set(task.frame)
+        dx0, dy0 = self.domain[0], self.domain[1]
+        x0, y0, x1, y1 = task.x0 + dx0, task.y0 + dy0, task.x1 + dx0, task.y1 + dy0
+        W, H = self.full_w, self.full_h
+        r.border_min_x, r.border_max_x = x0 / W, x1 / W
+        r.border_min_y, r.border_max_y = (H - y1) / H, (H - y0) / H
+        if hasattr(c, "use_sample_subset"):  # 4.4+
+            c.samples = int(task.offset + task.samples)
+            c.sample_offset = int(task.offset)
+            c.sample_subset_length = int(task.samples)
+        else:  # 4.2 / 4.3
+            c.samples = int(task.samples)
+            c.sample_offset = int(task.offset)
+        path = os.path.join(self.tmpdir, f"task{self.renders:06d}.exr")
+        r.filepath = path
+        bpy.ops.render.render(write_still=True, scene=s.name, layer=self.view_layer.name)
+        self.renders += 1
+        if not os.path.isfile(path):
+            raise SceneError(f"Cycles wrote no image for {task}")
+        passes, _ = imageio.read_layers(path)
+        os.unlink(path)
+        h, w = y1 - y0, x1 - x0
+        color = passes.get("Combined")
+        if color is None or color.shape[:2] != (h, w):
+            got = None if color is None else color.shape[:2]
+            raise SceneError(f"border render gave {got}, expected {(h, w)} for {task}")
+        feats = {}
+        for f in self.features:
+            names = PASS_SOURCES[f][0]
+            missing = [n for n in names if n not in passes]
+            if missing:
+                raise SceneError(f"pass {missing[0]!r} missing from the render (have {sorted(passes)})")
+            feats[f] = sum(passes[n].astype(np.float64) for n in names)
+        return color.astype(np.float64), feats
+
+    # --------------------------------------------------------------- preview
+    def write_preview(self, rgba: np.ndarray, path: str) -> None:
+        """PNG in the scene's view transform (Blender applies it on save)."""
+        write_preview(self.scene, rgba, path)
+
+
+def write_preview(scene, rgba: np.ndarray, path: str) -> None:
+    """Save (H, W, 3|4) scene-linear pixels as an 8-bit PNG through Blender's
+    colour management (the scene's view transform, look, exposure, gamma),
+    atomically."""
+    h, w = rgba.shape[:2]
+    px = np.ones((h, w, 4), np.float32)
+    px[:, :, :rgba.shape[2]] = np.nan_to_num(rgba[:, :, :4], nan=0.0, posinf=0.0, neginf=0.0)
+    img = bpy.data.images.new("cycles_adaptive_preview", w, h, alpha=True, float_buffer=True)
+    guard = SettingsGuard()
+    folder = os.path.dirname(os.path.abspath(path)) or "."
+    fd, tmp = tempfile.mkstemp(prefix=".tmp-", suffix=".png", dir=folder)
+    os.close(fd)
+    try:
+        img.pixels.foreach_set(px[::-1].ravel())  # Blender rows run bottom to top
+        st = scene.render.image_settings
+        if hasattr(st, "media_type"):
+            guard.set(st, "media_type", "IMAGE")
+        guard.set(st, "file_format", "PNG")
+        guard.set(st, "color_mode", "RGBA")
+        guard.set(st, "color_depth", "8")
+        img.save_render(tmp, scene=scene)
+        os.replace(tmp, path)
+    finally:
+        guard.restore()
+        bpy.data.images.remove(img)
+        if os.path.exists(tmp):
+            os.unlink(tmp)

@@ -1,0 +1,58 @@
+"""Render Properties panel: method, budget, parameters, the button, progress."""
+from __future__ import annotations
+
+import bpy
+
+from .props import _param_classes
+
+
+class CYCLESADAPTIVE_PT_panel(bpy.types.Panel):
+    bl_label = "Adaptive Rendering"
+    bl_space_type = "PROPERTIES"
+    bl_region_type = "WINDOW"
+    bl_context = "render"
+    COMPAT_ENGINES = {"CYCLES"}
+
+    @classmethod
+    def poll(cls, context):
+        return context.scene.render.engine == "CYCLES"
+
+    def draw(self, context):
+        layout = self.layout
+        layout.use_property_split = True
+        s = context.scene.cycles_adaptive
+        col = layout.column()
+        col.prop(s, "method")
+        col.prop(s, "spp")
+        col.prop(s, "initial_spp")
+        col.prop(s, "subsets")
+        col.prop(s, "iterations")
+        col.prop(s, "max_seconds")
+        col.prop(s, "seed")
+        col.prop(s, "output_path")
+        col.prop(s, "overwrite")
+        cls = _param_classes.get(s.method)
+        group = getattr(s, f"params_{s.method}", None)
+        if cls is not None and group is not None and cls.__annotations__:
+            box = layout.box()
+            box.label(text=f"{s.method.upper()} parameters")
+            for name in cls.__annotations__:
+                box.prop(group, name)
+        if s.running:
+            if hasattr(layout, "progress"):
+                layout.progress(factor=s.progress, text=s.status or "Rendering...")
+            else:
+                layout.label(text=f"{100 * s.progress:.0f}% {s.status}")
+            layout.label(text="Esc cancels and keeps what was rendered", icon="INFO")
+        else:
+            layout.operator("cycles_adaptive.render", icon="RENDER_STILL")
+            if s.status:
+                layout.label(text=s.status)
+
+
+def register():
+    bpy.utils.register_class(CYCLESADAPTIVE_PT_panel)
+
+
+def unregister():
+    bpy.utils.unregister_class(CYCLESADAPTIVE_PT_panel)

@@ -1,0 +1,166 @@
+"""Image files through OpenImageIO: multilayer EXR in and out, atomic writes.
+
+No bpy here.  Channel names follow Blender's multilayer convention
+``<view layer>.<pass>.<channel>`` (e.g. ``ViewLayer.Combined.R``); a plain EXR
+(``R, G, B[, A]``) reads as the single pass ``""``.
+"""
+from __future__ import annotations
+
+import os
+import tempfile
+
+import numpy as np
+
+try:  # OpenImageIO is a hard dependency, but fail with a clear message.
+    import OpenImageIO as oiio
+except ImportError as exc:  # pragma: no cover - exercised only on broken installs
+    raise ImportError("OpenImageIO is required (pip install OpenImageIO); "
+                      "run the README's setup command") from exc
+
+
+class ImageFileError(Exception):
+    """A file that cannot be read or written as asked; the message says why."""
+
+
+CHANNEL_LETTERS = {1: ("V",), 2: ("X", "Y"), 3: ("R", "G", "B"), 4: ("R", "G", "B", "A")}
+VECTOR_LETTERS = {3: ("X", "Y", "Z"), 4: ("X", "Y", "Z", "W")}
+
+
+def read_layers(path: str) -> tuple[dict, dict]:
+    """Read every channel of an EXR (or any OIIO-readable image).
+
+    Returns ``(passes, meta)``: ``passes`` maps pass name (view-layer prefix
+    removed; ``""`` for un-prefixed channels) to an (H, W, C) float32 array with
+    channels in file order; ``meta`` holds ``width``, ``height``, ``layer``
+    (the view-layer name, or ``""``), ``channels`` per pass and the file's
+    string attributes.
+    """
+    if not os.path.isfile(path):
+        raise ImageFileError(f"{path}: no such file")
+    inp = oiio.ImageInput.open(path)
+    if inp is None:
+        raise ImageFileError(f"{path}: cannot open as an image ({_oiio_error()})")
+    try:
+        spec = inp.spec()
+        pixels = inp.read_image(0, 0, 0, spec.nchannels, "float")
+        if pixels is None:
+            raise ImageFileError(f"{path}: unreadable pixel data, the file is truncated or "
+                                 f"corrupt ({_oiio_error(inp)})")
+        pixels = np.asarray(pixels, np.float32).reshape(spec.height, spec.width, spec.nchannels)
+        names = list(spec.channelnames)
+        attrs = {}
+        for a in spec.extra_attribs:
+            if isinstance(a.value, str):
+                attrs[a.name] = a.value
+    finally:
+        inp.close()
+    groups: dict = {}
+    layer = ""
+    for i, name in enumerate(names):
+        parts = name.split(".")
+        if len(parts) >= 3:
+            layer = parts[0]
+            pname, ch = ".".join(parts[1:-1]), parts[-1]
+        elif len(parts) == 2:
+            pname, ch = parts
+        else:
+            pname, ch = "", parts[0]
+        groups.setdefault(pname, []).append((i, ch))
+    passes = {k: pixels[:, :, [i for i, _ in v]] for k, v in groups.items()}
+    meta = {"width": spec.width, "height": spec.height, "layer": layer,
+            "channels": {k: [c for _, c in v] for k, v in groups.items()}, "attributes": attrs}
+    return passes, meta
+
+
+def read_rgb(path: str) -> np.ndarray:
+    """(H, W, 3) float64 image of a reference: the Combined pass of a multilayer
+    EXR, else the R, G, B channels of a plain image."""
+    passes, meta = read_layers(path)
+    for key in ("Combined", ""):
+        if key in passes and passes[key].shape[2] >= 3:
+            return passes[key][:, :, :3].astype(np.float64)
+    raise ImageFileError(f"{path}: no Combined layer and no R, G, B channels "
+                         f"(passes: {sorted(passes)})")
+
+
+def write_layers(path: str, passes: dict, layer: str = "ViewLayer", attributes: dict | None = None,
+                 half: bool = False) -> None:
+    """Write a multilayer EXR atomically (temporary file in the same folder, then
+    rename).  ``passes`` maps pass name to (H, W) or (H, W, C) arrays, or to
+    ``(array, channel_letters)`` to choose channel names."""
+    arrays, names = [], []
+    shape = None
+    for pname, value in passes.items():
+        arr, letters = value if isinstance(value, tuple) else (value, None)
+        arr = np.asarray(arr, np.float32)
+        if arr.ndim == 2:
+            arr = arr[:, :, None]
+        if shape is None:
+            shape = arr.shape[:2]
+        elif arr.shape[:2] != shape:
+            raise ValueError(f"pass {pname!r} is {arr.shape[:2]}, others {shape}")
+        letters = letters or CHANNEL_LETTERS.get(arr.shape[2]) or tuple(str(i) for i in range(arr.shape[2]))
+        for c, letter in enumerate(letters):
+            names.append(f"{layer}.{pname}.{letter}" if layer else f"{pname}.{letter}")
+            arrays.append(arr[:, :, c])
+    data = np.ascontiguousarray(np.stack(arrays, axis=-1))
+    spec = oiio.ImageSpec(shape[1], shape[0], len(names), "half" if half else "float")
+    spec.channelnames = names
+    spec.attribute("compression", "zip")
+    for k, v in (attributes or {}).items():
+        spec.attribute(k, str(v))
+    _atomic_write(path, spec, data)
+
+
+def write_png(path: str, rgb_display: np.ndarray) -> None:
+    """Write an 8-bit PNG atomically from display-referred (H, W, 3|4) values in
+    [0, 1] (the caller applies the view transform)."""
+    arr = np.clip(np.nan_to_num(np.asarray(rgb_display, np.float64)), 0.0, 1.0)
+    arr = np.ascontiguousarray((arr * 255.0 + 0.5).astype(np.uint8))
+    spec = oiio.ImageSpec(arr.shape[1], arr.shape[0], arr.shape[2], "uint8")
+    _atomic_write(path, spec, arr)
+
+
+def check_writable(path: str, overwrite: bool) -> None:
+    """Raise ImageFileError unless ``path`` can be created (or replaced when
+    ``overwrite``): existing file, missing or unwritable folder."""
+    folder = os.path.dirname(os.path.abspath(path)) or "."
+    if os.path.exists(path) and not overwrite:
+        raise ImageFileError(f"{path} exists; pass --overwrite to replace it")
+    if os.path.isdir(path):
+        raise ImageFileError(f"{path} is a folder, not a file")
+    if not os.path.isdir(folder):
+        raise ImageFileError(f"{folder}: output folder does not exist")
+    if not os.access(folder, os.W_OK):
+        raise ImageFileError(f"{folder}: output folder is not writable")
+
+
+def _atomic_write(path: str, spec, data) -> None:
+    folder = os.path.dirname(os.path.abspath(path)) or "."
+    ext = os.path.splitext(path)[1] or ".exr"
+    fd, tmp = tempfile.mkstemp(prefix=".tmp-", suffix=ext, dir=folder)
+    os.close(fd)
+    try:
+        out = oiio.ImageOutput.create(tmp)
+        if out is None:
+            raise ImageFileError(f"{path}: no writer for this format ({_oiio_error()})")
+        if not out.open(tmp, spec):
+            raise ImageFileError(f"{path}: cannot write ({out.geterror()})")
+        ok = out.write_image(data)
+        out.close()
+        if not ok:
+            raise ImageFileError(f"{path}: write failed ({out.geterror()})")
+        os.replace(tmp, path)
+    except BaseException:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+        raise
+
+
+def _oiio_error(obj=None) -> str:
+    msg = ""
+    try:
+        msg = obj.geterror() if obj is not None else oiio.geterror()
+    except Exception:
+        pass
+    return (msg or "unknown error").strip().splitlines()[0] if msg else "unknown error"

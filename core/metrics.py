@@ -1,0 +1,58 @@
+"""Error metrics, stated exactly as in DESIGN.md."""
+from __future__ import annotations
+
+import numpy as np
+
+
+def relmse(x: np.ndarray, ref: np.ndarray) -> float:
+    """relMSE = mean over pixels and RGB channels of (x - r)^2 / (r^2 + 0.01).
+
+    x, ref : (H, W, 3+) arrays (only RGB is used).  Non-finite values in ``x``
+    count as an error of ``r^2 + 0.01`` times 1e6 (never silently ignored).
+    """
+    x = np.asarray(x, np.float64)[..., :3]
+    r = np.asarray(ref, np.float64)[..., :3]
+    _check(x, r)
+    e = (x - r) ** 2 / (r * r + 0.01)
+    e = np.where(np.isfinite(e), e, 1e6)
+    return float(e.mean())
+
+
+def per_pixel_relmse(x: np.ndarray, ref: np.ndarray) -> np.ndarray:
+    """(H, W) relative squared error averaged over RGB (the quantity relMSE averages)."""
+    x = np.asarray(x, np.float64)[..., :3]
+    r = np.asarray(ref, np.float64)[..., :3]
+    _check(x, r)
+    e = (x - r) ** 2 / (r * r + 0.01)
+    return np.where(np.isfinite(e), e, 1e6).mean(axis=-1)
+
+
+def smape(x: np.ndarray, ref: np.ndarray) -> float:
+    """SMAPE = mean of |x - r| / (|x| + |r| + 0.01) over pixels and RGB."""
+    x = np.asarray(x, np.float64)[..., :3]
+    r = np.asarray(ref, np.float64)[..., :3]
+    _check(x, r)
+    e = np.abs(x - r) / (np.abs(x) + np.abs(r) + 0.01)
+    return float(np.where(np.isfinite(e), e, 1.0).mean())
+
+
+def error_correlation(estimated: np.ndarray, x: np.ndarray, ref: np.ndarray) -> float:
+    """Pearson correlation between an estimated per-pixel squared error (H, W)
+    and the true squared error of ``x`` against ``ref`` (averaged over RGB).
+    Returns 0.0 when either has no variation."""
+    x = np.asarray(x, np.float64)[..., :3]
+    r = np.asarray(ref, np.float64)[..., :3]
+    _check(x, r)
+    true = ((x - r) ** 2).mean(axis=-1).ravel()
+    est = np.asarray(estimated, np.float64).ravel()
+    ok = np.isfinite(true) & np.isfinite(est)
+    if ok.sum() < 2:
+        return 0.0
+    a, b = true[ok] - true[ok].mean(), est[ok] - est[ok].mean()
+    den = np.sqrt((a * a).sum() * (b * b).sum())
+    return float((a * b).sum() / den) if den > 0 else 0.0
+
+
+def _check(x, r):
+    if x.shape != r.shape:
+        raise ValueError(f"image is {x.shape[:2]} but the reference is {r.shape[:2]}")

@@ -1,0 +1,36 @@
+"""Uniform sampling, no reconstruction: the baseline (plain Cycles).
+
+The loop renders the whole budget in its initial pass for this method
+(``ADAPTIVE = False``), exactly what a user gets from plain Cycles at the same
+sample count; ``sample_map`` still gives an even map for callers that ask.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from .buffers import Buffers
+from .method import MethodResult, allocate
+
+PASSES: tuple = ()
+ADAPTIVE = False
+
+
+@dataclass
+class Params:
+    """Uniform sampling has no parameters."""
+
+
+def reconstruct(buf: Buffers, params: Params | None = None) -> MethodResult:
+    """The sample mean; error = variance of the mean averaged over RGB
+    (0 where no variance estimate exists, k < 2)."""
+    var = buf.variance_of_mean()
+    err = np.where(np.isfinite(var), var, 0.0).mean(axis=-1)
+    img = np.where(np.isfinite(buf.color.mean), buf.color.mean, 0.0)
+    return MethodResult(img, err, {})
+
+
+def sample_map(buf: Buffers, result: MethodResult, budget: int, params=None, state=None) -> np.ndarray:
+    """Even map: ``budget // pixels`` everywhere, the remainder spread evenly."""
+    return allocate(np.ones(buf.shape), budget)

@@ -1,0 +1,263 @@
+"""Command line: ``./cycles-adaptive {render,denoise,bench}`` and the Blender
+command ``blender -b scene.blend -c cycles_adaptive render ...`` (same parser,
+same job function).
+
+Exit codes: 0 done, 1 failed during the run, 2 bad input (one-line message,
+no traceback), 130 interrupted (the partial result was written).
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+import time
+from dataclasses import MISSING, fields
+
+from ..core import methods
+from ..core.pipeline import Options
+
+EXIT_OK, EXIT_FAIL, EXIT_INPUT, EXIT_INTERRUPT = 0, 1, 2, 130
+
+
+class UserError(Exception):
+    """Bad input: printed as one line, exit code 2."""
+
+
+def _flag(method: str, name: str) -> str:
+    return f"--{method}-{name.replace('_', '-')}"
+
+
+def add_method_params(p: argparse.ArgumentParser, names=None) -> None:
+    """One flag per method parameter, generated from each Params dataclass."""
+    for m in names or methods.METHODS:
+        try:
+            flds = methods.param_fields(m)
+        except ImportError:
+            continue
+        if not flds:
+            continue
+        g = p.add_argument_group(f"{m} parameters")
+        for f in flds:
+            default = f.default if f.default is not MISSING else None
+            help_ = f.metadata.get("help", "") + (f" (default {default})" if default is not None else "")
+            if isinstance(default, bool):
+                g.add_argument(_flag(m, f.name), dest=f"{m}__{f.name}", default=None,
+                               action=argparse.BooleanOptionalAction, help=help_)
+            else:
+                typ = type(default) if default is not None else str
+                g.add_argument(_flag(m, f.name), dest=f"{m}__{f.name}", type=typ, default=None,
+                               metavar=typ.__name__.upper(), help=help_)
+
+
+def method_params(args, method: str) -> dict:
+    prefix = method + "__"
+    return {k[len(prefix):]: v for k, v in vars(args).items() if k.startswith(prefix) and v is not None}
+
+
+def build_parser(blender_command: bool = False) -> argparse.ArgumentParser:
+    prog = "blender -b scene.blend -c cycles_adaptive" if blender_command else "cycles-adaptive"
+    p = argparse.ArgumentParser(prog=prog, description="Adaptive rendering and denoising for Cycles.")
+    sub = p.add_subparsers(dest="command", required=True)
+
+    r = sub.add_parser("render", help="adaptive render of a .blend file")
+    r.add_argument("blend", nargs="?" if blender_command else None,
+                   help="the .blend file" + (" (default: the file Blender opened)" if blender_command else ""))
+    r.add_argument("--method", default="var", choices=list(methods.METHODS))
+    r.add_argument("--spp", type=float, default=16.0, help="mean samples per pixel of the whole run "
+                   "(initial pass included); more is slower and more accurate")
+    r.add_argument("--initial-spp", type=int, default=4, help="samples per pixel of the first pass")
+    r.add_argument("--subsets", type=int, default=4, help="sample subsets of the first pass "
+                   "(variance estimate with subsets-1 degrees of freedom)")
+    r.add_argument("--iterations", type=int, default=4, help="adaptive iterations after the first pass")
+    r.add_argument("--out", help="output EXR (default: next to the .blend, NAME.METHOD.exr)")
+    r.add_argument("--reference", help="reference EXR to measure relMSE against")
+    r.add_argument("--resolution-percentage", type=int, help="override the scene's resolution %%")
+    r.add_argument("--frame", type=int, help="frame to render (default: the scene's current frame)")
+    r.add_argument("--seed", type=int, default=0, help="Cycles seed")
+    r.add_argument("--scene", help="scene name (default: the active scene)")
+    r.add_argument("--view-layer", help="view layer name (default: the active view layer)")
+    r.add_argument("--max-seconds", type=float, default=0.0, help="stop sampling after this many "
+                   "seconds (0: no limit)")
+    r.add_argument("--overwrite", action="store_true", help="replace existing output files")
+    r.add_argument("--resume", action="store_true", help="continue from OUT.exr.checkpoint.npz")
+    r.add_argument("--no-preview", action="store_true", help="do not write the PNG preview")
+    r.add_argument("--json", action="store_true", help="print one JSON object as the last line")
+    r.add_argument("--quiet", action="store_true", help="no progress lines")
+    add_method_params(r)
+
+    d = sub.add_parser("denoise", help="reconstruct from a saved passes EXR")
+    d.add_argument("passes", help="an output EXR of `render`, or a Blender multilayer EXR with "
+                   "Combined and Denoising passes")
+    d.add_argument("--method", default="lp", choices=list(methods.DENOISERS))
+    d.add_argument("--out", help="output EXR (default PASSES.METHOD.exr)")
+    d.add_argument("--reference")
+    d.add_argument("--overwrite", action="store_true")
+    d.add_argument("--json", action="store_true")
+    add_method_params(d, methods.DENOISERS)
+
+    b = sub.add_parser("bench", help="measure the speed/accuracy trade against uniform, "
+                       "Cycles adaptive sampling and OIDN")
+    b.add_argument("--scenes", nargs="*")
+    b.add_argument("--methods", nargs="*")
+    b.add_argument("--budgets", default="4,8,16,32")
+    b.add_argument("--out", default="bench_out")
+    b.add_argument("--quick", action="store_true", help="tiny resolution, one budget (< 3 minutes)")
+    return p
+
+
+def main(argv=None, blender_command: bool = False) -> int:
+    parser = build_parser(blender_command)
+    try:
+        args = parser.parse_args(argv)
+    except SystemExit as exc:  # argparse prints its own message
+        return int(exc.code or 0)
+    try:
+        if args.command == "render":
+            return cmd_render(args, blender_command)
+        if args.command == "denoise":
+            return cmd_denoise(args)
+        if args.command == "bench":
+            from . import bench
+            return bench.main(args)
+    except KeyboardInterrupt:
+        print("interrupted", file=sys.stderr)
+        return EXIT_INTERRUPT
+    except Exception as exc:  # one line for the user; known input errors
+        if _is_user_error(exc):
+            print(f"error: {exc}", file=sys.stderr)
+            return EXIT_INPUT
+        raise
+    return EXIT_FAIL
+
+
+def _is_user_error(exc) -> bool:
+    from ..core.io import ImageFileError
+    from ..addon.executor import SceneError
+    from .job import JobError
+    return isinstance(exc, (UserError, JobError, SceneError, ImageFileError, ValueError, FileNotFoundError))
+
+
+def open_blend(path: str):
+    import bpy
+    if not os.path.isfile(path):
+        raise UserError(f"{path}: no such .blend file")
+    try:
+        bpy.ops.wm.open_mainfile(filepath=os.path.abspath(path), load_ui=False)
+    except RuntimeError as exc:
+        raise UserError(f"{path}: cannot open ({str(exc).strip().splitlines()[-1]})") from None
+
+
+def resolve_scene(args):
+    import bpy
+    scene = bpy.data.scenes.get(args.scene) if args.scene else bpy.context.scene
+    if scene is None:
+        raise UserError(f"no scene named {args.scene!r} (have {', '.join(s.name for s in bpy.data.scenes)})")
+    if args.view_layer:
+        vl = scene.view_layers.get(args.view_layer)
+        if vl is None:
+            raise UserError(f"no view layer {args.view_layer!r} in scene {scene.name!r}")
+    else:
+        vl = bpy.context.view_layer if bpy.context.scene == scene else scene.view_layers[0]
+    return scene, vl
+
+
+def default_out(blend_path: str, method: str, suffix: str = "") -> str:
+    stem = os.path.splitext(os.path.abspath(blend_path))[0]
+    return f"{stem}.{method}{suffix}.exr"
+
+
+def cmd_render(args, blender_command=False) -> int:
+    import bpy
+    from .job import RenderJob
+    if args.blend:
+        open_blend(args.blend)
+    elif not bpy.data.filepath and not blender_command:
+        raise UserError("no .blend file given")
+    scene, vl = resolve_scene(args)
+    if args.resolution_percentage is not None:
+        if not 1 <= args.resolution_percentage <= 10000:
+            raise UserError("--resolution-percentage must be between 1 and 10000")
+        scene.render.resolution_percentage = args.resolution_percentage
+    frame = scene.frame_current if args.frame is None else args.frame
+    opts = Options(method=args.method, spp=args.spp, initial_spp=args.initial_spp,
+                   subsets=args.subsets, iterations=args.iterations, frame=frame, seed=args.seed,
+                   max_seconds=args.max_seconds, params=method_params(args, args.method))
+    out = args.out or default_out(bpy.data.filepath or "untitled.blend", args.method)
+    job = RenderJob(scene, vl, opts, out, reference=args.reference, overwrite=args.overwrite,
+                    resume=args.resume, preview=not args.no_preview)
+    interrupted = False
+    last = 0.0
+    try:
+        for step in job.steps():
+            now = time.perf_counter()
+            if not args.quiet and (step.stage != "render" or now - last > 0.5 or
+                                   step.tasks_done == step.tasks_total):
+                print(f"[cycles-adaptive] {100 * step.fraction:5.1f}% {step.message}", flush=True)
+                last = now
+    except KeyboardInterrupt:
+        interrupted = True
+        print("[cycles-adaptive] interrupted: writing the partial result", file=sys.stderr, flush=True)
+    summary = job.finish(partial=interrupted)
+    _report(summary, args.json)
+    return EXIT_INTERRUPT if interrupted else EXIT_OK
+
+
+def cmd_denoise(args) -> int:
+    import numpy as np
+    from ..core import io as imageio
+    from ..core import metrics
+    from ..core.method import params_from_dict
+    from .job import (JobError, buffers_from_passes, buffers_to_passes, load_reference,
+                      peak_rss_mb, preview_path)
+    t0 = time.perf_counter()
+    out = os.path.abspath(args.out or os.path.splitext(args.passes)[0] + f".{args.method}.exr")
+    imageio.check_writable(out, args.overwrite)
+    passes, meta = imageio.read_layers(args.passes)
+    buf = buffers_from_passes(passes, args.passes)
+    method = methods.get(args.method)
+    missing = [f for f in method.PASSES if f not in buf.features]
+    if missing:
+        raise JobError(f"{args.passes}: method {args.method} needs the {missing[0]} pass, "
+                       f"which the file lacks (have {', '.join(sorted(buf.features)) or 'none'})")
+    ref = load_reference(args.reference, buf.shape)
+    params = params_from_dict(method.Params, method_params(args, args.method))
+    t1 = time.perf_counter()
+    result = method.reconstruct(buf, params)
+    t_rec = time.perf_counter() - t1
+    image = np.where(np.isfinite(result.image), result.image, 0.0)
+    error = np.where(np.isfinite(result.error), result.error, 0.0)
+    out_passes = buffers_to_passes(buf, image, error)
+    imageio.write_layers(out, out_passes, layer=meta.get("layer") or "ViewLayer",
+                         attributes={"cycles_adaptive/method": args.method})
+    h, w = buf.shape
+    summary = {"method": args.method, "width": w, "height": h,
+               "spp_mean": float(buf.n.mean()), "render_seconds": 0.0,
+               "reconstruct_seconds": t_rec, "total_seconds": time.perf_counter() - t0,
+               "regions": 0, "peak_rss_mb": peak_rss_mb(), "out": out}
+    for k, v in result.info.items():
+        if isinstance(v, (int, float, str, bool)):
+            summary[k] = v
+    if ref is not None:
+        summary["relmse"] = metrics.relmse(image, ref)
+        summary["smape"] = metrics.smape(image, ref)
+        summary["error_correlation"] = metrics.error_correlation(error, image, ref)
+    _report(summary, args.json)
+    return EXIT_OK
+
+
+def _report(summary: dict, as_json: bool) -> None:
+    if as_json:
+        print(json.dumps(summary), flush=True)
+        return
+    keys = ("method", "width", "height", "spp_mean", "regions", "render_seconds",
+            "reconstruct_seconds", "total_seconds", "relmse", "out")
+    for k in keys:
+        if k in summary:
+            v = summary[k]
+            print(f"{k:>20}: {v:.4g}" if isinstance(v, float) else f"{k:>20}: {v}")
+
+
+def blender_command(argv) -> int:
+    """Entry point registered with ``bpy.utils.register_cli_command``."""
+    return main(list(argv), blender_command=True)

@@ -1,0 +1,154 @@
+"""The Render Properties button: a modal operator that steps the render job
+from a timer, so Blender never freezes; progress in the panel and the status
+bar; Esc cancels and keeps (and writes) what was rendered.
+
+``execute()`` (no window, e.g. ``bpy.ops.cycles_adaptive.render()`` from a
+script or under ``blender -b``) runs the same job synchronously.
+"""
+from __future__ import annotations
+
+import time
+import traceback
+
+import bpy
+
+from ..core.pipeline import Options
+from .job import JobError, RenderJob
+
+STEP_SECONDS = 0.05  # work per timer tick before handing control back to the UI
+
+
+def _options(scene) -> Options:
+    from ..addon.props import method_params
+    s = scene.cycles_adaptive
+    return Options(method=s.method, spp=s.spp, initial_spp=s.initial_spp, subsets=s.subsets,
+                   iterations=s.iterations, frame=scene.frame_current, seed=s.seed,
+                   max_seconds=s.max_seconds, params=method_params(s, s.method))
+
+
+def _show(job: RenderJob):
+    from ..addon.display import show_result
+    run = job.run
+    if run is None or run.buffers is None:
+        return
+    res = run.method.reconstruct(run.buffers, run.params)
+    alpha = run.buffers.features["alpha"].mean if "alpha" in run.buffers.features else None
+    show_result(res.image, run.buffers.n, res.error, alpha)
+
+
+class CYCLESADAPTIVE_OT_render(bpy.types.Operator):
+    """Adaptive render of the current frame with the chosen method and budget"""
+
+    bl_idname = "cycles_adaptive.render"
+    bl_label = "Adaptive Render"
+    bl_options = {"REGISTER"}
+
+    _timer = None
+    _job = None
+    _steps = None
+
+    @classmethod
+    def poll(cls, context):
+        return context.scene is not None and context.scene.render.engine == "CYCLES"
+
+    # ------------------------------------------------------------- batch path
+    def execute(self, context):
+        scene = context.scene
+        try:
+            job = self._make_job(context)
+            for _ in job.steps():
+                pass
+            summary = job.finish()
+        except JobError as exc:
+            self.report({"ERROR"}, str(exc))
+            return {"CANCELLED"}
+        except Exception as exc:  # the scene is restored by the executor already
+            self.report({"ERROR"}, f"adaptive render failed: {exc}")
+            traceback.print_exc()
+            return {"CANCELLED"}
+        _show(job)
+        scene.cycles_adaptive.status = f"Done: {summary['spp_mean']:.1f} spp, wrote {summary['out']}"
+        self.report({"INFO"}, scene.cycles_adaptive.status)
+        return {"FINISHED"}
+
+    # ------------------------------------------------------------- modal path
+    def invoke(self, context, event):
+        if context.window is None:
+            return self.execute(context)
+        try:
+            self._job = self._make_job(context)
+        except Exception as exc:
+            self.report({"ERROR"}, str(exc))
+            return {"CANCELLED"}
+        self._steps = self._job.steps()
+        s = context.scene.cycles_adaptive
+        s.running, s.progress, s.status = True, 0.0, "Starting"
+        wm = context.window_manager
+        self._timer = wm.event_timer_add(0.01, window=context.window)
+        wm.progress_begin(0, 1000)
+        wm.modal_handler_add(self)
+        return {"RUNNING_MODAL"}
+
+    def modal(self, context, event):
+        if event.type == "ESC":
+            return self._end(context, cancelled=True)
+        if event.type != "TIMER":
+            return {"PASS_THROUGH"}
+        s = context.scene.cycles_adaptive
+        t_end = time.perf_counter() + STEP_SECONDS
+        try:
+            while time.perf_counter() < t_end:
+                step = next(self._steps)
+                s.progress, s.status = step.fraction, step.message
+        except StopIteration:
+            return self._end(context, cancelled=False)
+        except Exception as exc:
+            self.report({"ERROR"}, f"adaptive render failed: {exc}")
+            traceback.print_exc()
+            return self._end(context, cancelled=True, failed=True)
+        context.window_manager.progress_update(int(1000 * s.progress))
+        context.workspace.status_text_set(f"Cycles Adaptive: {100 * s.progress:.0f}% {s.status}")
+        for area in context.screen.areas if context.screen else ():
+            if area.type == "PROPERTIES":
+                area.tag_redraw()
+        return {"RUNNING_MODAL"}
+
+    def _end(self, context, cancelled: bool, failed: bool = False):
+        wm = context.window_manager
+        if self._timer is not None:
+            wm.event_timer_remove(self._timer)
+            self._timer = None
+        wm.progress_end()
+        if context.workspace:
+            context.workspace.status_text_set(None)
+        s = context.scene.cycles_adaptive
+        if self._steps is not None:
+            self._steps.close()  # leaves the executor: scene settings restored
+        s.running = False
+        try:
+            if self._job is not None and self._job.run is not None and self._job.run.buffers is not None:
+                summary = self._job.finish(partial=cancelled)
+                _show(self._job)
+                what = "Cancelled" if cancelled else "Done"
+                s.status = f"{what}: {summary['spp_mean']:.1f} spp, wrote {summary['out']}"
+            else:
+                s.status = "Cancelled before any sample was rendered"
+        except Exception as exc:
+            s.status = f"Could not write the result: {exc}"
+            self.report({"ERROR"}, s.status)
+        self.report({"WARNING" if cancelled else "INFO"}, s.status)
+        return {"CANCELLED"} if cancelled or failed else {"FINISHED"}
+
+    def _make_job(self, context) -> RenderJob:
+        scene = context.scene
+        s = scene.cycles_adaptive
+        return RenderJob(scene, context.view_layer, _options(scene), s.output_path,
+                         overwrite=s.overwrite)
+
+
+def register():
+    bpy.utils.register_class(CYCLESADAPTIVE_OT_render)
+
+
+def unregister():
+    bpy.utils.unregister_class(CYCLESADAPTIVE_OT_render)

@@ -1,0 +1,81 @@
+import numpy as np
+import pytest
+
+from core.buffers import Buffers
+
+
+def _groups(rng, h=5, w=7, sizes=(3, 1, 4, 2)):
+    samples = [rng.normal(1.0, 0.5, size=(n, h, w, 3)) for n in sizes]
+    return samples
+
+
+def test_chan_merge_mean_equals_mean_of_all_samples():
+    rng = np.random.default_rng(0)
+    groups = _groups(rng)
+    buf = Buffers.from_subsets([g.mean(0) for g in groups], [len(g) for g in groups],
+                               [{} for _ in groups])
+    allsamp = np.concatenate(groups, 0)
+    np.testing.assert_allclose(buf.color.mean, allsamp.mean(0), atol=1e-12)
+    assert np.all(buf.n == len(allsamp)) and np.all(buf.k == len(groups))
+
+
+def test_m2_is_between_group_sum_of_squares():
+    rng = np.random.default_rng(1)
+    groups = _groups(rng)
+    buf = Buffers.from_subsets([g.mean(0) for g in groups], [len(g) for g in groups])
+    mu = np.concatenate(groups, 0).mean(0)
+    expect = sum(len(g) * (g.mean(0) - mu) ** 2 for g in groups)
+    np.testing.assert_allclose(buf.color.m2, expect, rtol=1e-10, atol=1e-12)
+
+
+def test_merge_of_accumulated_buffers_equals_sequential_merge():
+    rng = np.random.default_rng(2)
+    groups = _groups(rng, sizes=(2, 3, 1, 5, 4))
+    seq = Buffers.from_subsets([g.mean(0) for g in groups], [len(g) for g in groups])
+    a = Buffers.from_subsets([g.mean(0) for g in groups[:2]], [len(g) for g in groups[:2]])
+    b = Buffers.from_subsets([g.mean(0) for g in groups[2:]], [len(g) for g in groups[2:]])
+    a.merge(b)
+    np.testing.assert_allclose(a.color.mean, seq.color.mean, atol=1e-12)
+    np.testing.assert_allclose(a.color.m2, seq.color.m2, rtol=1e-9, atol=1e-12)
+    np.testing.assert_array_equal(a.k, seq.k)
+
+
+def test_variance_of_mean_is_unbiased():
+    # E[M2 / ((k-1) n)] = sigma^2 / n for unequal group sizes
+    rng = np.random.default_rng(3)
+    sizes = (1, 2, 5, 8)
+    sigma = 0.7
+    est = []
+    for _ in range(400):
+        groups = [rng.normal(0.0, sigma, size=(n, 4, 4, 3)) for n in sizes]
+        buf = Buffers.from_subsets([g.mean(0) for g in groups], list(sizes))
+        est.append(buf.variance_of_mean().mean())
+    n = sum(sizes)
+    assert abs(np.mean(est) - sigma ** 2 / n) < 0.03 * sigma ** 2 / n
+
+
+def test_single_group_has_no_variance_estimate():
+    buf = Buffers.from_subsets([np.ones((2, 3, 3))], [4])
+    assert not buf.has_variance.any()
+    assert np.all(np.isinf(buf.variance_of_mean()))
+
+
+def test_region_merge_touches_only_the_region_and_zero_count_is_noop():
+    buf = Buffers.from_subsets([np.ones((4, 6, 3)), np.full((4, 6, 3), 3.0)], [2, 2])
+    before = buf.copy()
+    buf.merge_group(np.full((2, 3, 3), 10.0), 4, {}, region=(1, 1, 4, 3))
+    assert np.all(buf.n[1:3, 1:4] == 8) and buf.n.sum() == 4 * 24 + 4 * 6
+    np.testing.assert_allclose(buf.color.mean[1:3, 1:4], (2 * 1 + 2 * 3 + 4 * 10) / 8)
+    mask = np.ones((4, 6), bool)
+    mask[1:3, 1:4] = False
+    np.testing.assert_array_equal(buf.color.mean[mask], before.color.mean[mask])
+    again = buf.copy()
+    buf.merge_group(np.full((4, 6, 3), 99.0), 0, {})
+    np.testing.assert_array_equal(buf.color.mean, again.color.mean)
+    np.testing.assert_array_equal(buf.k, again.k)
+
+
+def test_feature_passes_are_required_in_every_group():
+    buf = Buffers.empty(2, 2, ("albedo",))
+    with pytest.raises(KeyError):
+        buf.merge_group(np.ones((2, 2, 3)), 1, {})
