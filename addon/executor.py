@@ -14,14 +14,17 @@ Version paths (DESIGN.md, checked facts):
 """
 from __future__ import annotations
 
+import contextlib
 import os
 import shutil
+import sys
 import tempfile
 
 import bpy
 import numpy as np
 
 from ..core import io as imageio
+from ..core import regions
 
 #: feature name -> (EXR pass names summed, how to enable it)
 PASS_SOURCES = {
@@ -35,6 +38,31 @@ PASS_SOURCES = {
     "transmission": (("TransDir", "TransInd"),
                      ("use_pass_transmission_direct", "use_pass_transmission_indirect")),
 }
+
+
+@contextlib.contextmanager
+def quiet_stdout():
+    """Silence Cycles' per-render log lines ("Fra: ... Sample 3/4", "Saved:")
+    on the process's stdout while it renders; our progress lines stay readable.
+    Set CYCLES_ADAPTIVE_VERBOSE=1 to keep them."""
+    if os.environ.get("CYCLES_ADAPTIVE_VERBOSE"):
+        yield
+        return
+    try:
+        sys.stdout.flush()
+        fd = sys.stdout.fileno()
+    except (AttributeError, OSError, ValueError):
+        yield
+        return
+    saved = os.dup(fd)
+    devnull = os.open(os.devnull, os.O_WRONLY)
+    try:
+        os.dup2(devnull, fd)
+        yield
+    finally:
+        os.dup2(saved, fd)
+        os.close(saved)
+        os.close(devnull)
 
 
 class SceneError(Exception):
@@ -79,10 +107,9 @@ def border_pixels(scene) -> tuple:
     r = scene.render
     if not r.use_border:
         return 0, 0, w, h
-    cl = lambda v: min(max(v, 0.0), 1.0)
-    x0, x1 = int(round(cl(r.border_min_x) * w)), int(round(cl(r.border_max_x) * w))
-    yb0, yb1 = int(round(cl(r.border_min_y) * h)), int(round(cl(r.border_max_y) * h))
-    return x0, h - yb1, x1, h - yb0
+    cl = lambda v: min(max(float(v), 0.0), 1.0)
+    border = {a: cl(getattr(r, a)) for a in ("border_min_x", "border_max_x", "border_min_y", "border_max_y")}
+    return regions.pixels_from_border(border, w, h)
 
 
 class SettingsGuard:
@@ -189,6 +216,14 @@ class CyclesExecutor:
         if self.seed is not None:
             g.set(c, "seed", int(self.seed))
             g.set(c, "use_animated_seed", False)
+        # Blue-noise patterns (the 'AUTOMATIC' default of 4.2+) depend on the
+        # total sample count and, with persistent data, on earlier renders:
+        # subsets of different lengths then do not merge.  Tabulated Sobol
+        # indexes samples independently of the count: exact merges (tested).
+        try:
+            g.set(c, "sampling_pattern", "TABULATED_SOBOL")
+        except TypeError:  # a version without it: its only pattern is count-independent
+            pass
         g.set(c, "samples", c.samples)
         g.set(c, "sample_offset", c.sample_offset)
         if hasattr(c, "use_sample_subset"):
@@ -229,9 +264,8 @@ class CyclesExecutor:
             s.frame_set(task.frame)
         dx0, dy0 = self.domain[0], self.domain[1]
         x0, y0, x1, y1 = task.x0 + dx0, task.y0 + dy0, task.x1 + dx0, task.y1 + dy0
-        W, H = self.full_w, self.full_h
-        r.border_min_x, r.border_max_x = x0 / W, x1 / W
-        r.border_min_y, r.border_max_y = (H - y1) / H, (H - y0) / H
+        for attr, value in regions.border_from_pixels(x0, y0, x1, y1, self.full_w, self.full_h).items():
+            setattr(r, attr, float(value))
         if hasattr(c, "use_sample_subset"):  # 4.4+
             c.samples = int(task.offset + task.samples)
             c.sample_offset = int(task.offset)
@@ -241,7 +275,8 @@ class CyclesExecutor:
             c.sample_offset = int(task.offset)
         path = os.path.join(self.tmpdir, f"task{self.renders:06d}.exr")
         r.filepath = path
-        bpy.ops.render.render(write_still=True, scene=s.name, layer=self.view_layer.name)
+        with quiet_stdout():
+            bpy.ops.render.render(write_still=True, scene=s.name, layer=self.view_layer.name)
         self.renders += 1
         if not os.path.isfile(path):
             raise SceneError(f"Cycles wrote no image for {task}")

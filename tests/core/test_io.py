@@ -1,0 +1,62 @@
+import os
+
+import numpy as np
+import pytest
+
+from core import io as imageio
+
+
+def test_multilayer_roundtrip_keeps_passes_and_channels(tmp_path):
+    rng = np.random.default_rng(0)
+    passes = {"Combined": rng.random((5, 7, 4)), "Samples": rng.random((5, 7)),
+              "Feat_normal": (rng.random((5, 7, 3)), ("X", "Y", "Z"))}
+    path = str(tmp_path / "a.exr")
+    imageio.write_layers(path, passes, layer="ViewLayer", attributes={"cycles_adaptive/method": "lp"})
+    got, meta = imageio.read_layers(path)
+    assert meta["layer"] == "ViewLayer" and (meta["width"], meta["height"]) == (7, 5)
+    np.testing.assert_allclose(got["Combined"], passes["Combined"].astype(np.float32))
+    np.testing.assert_allclose(got["Samples"][:, :, 0], passes["Samples"].astype(np.float32))
+    assert meta["channels"]["Feat_normal"] == ["X", "Y", "Z"]
+    assert meta["attributes"]["cycles_adaptive/method"] == "lp"
+    np.testing.assert_allclose(imageio.read_rgb(path), passes["Combined"][:, :, :3].astype(np.float32))
+
+
+def test_write_is_atomic_and_leaves_no_temporary(tmp_path):
+    path = str(tmp_path / "b.exr")
+    imageio.write_layers(path, {"Combined": np.zeros((2, 2, 4))})
+    assert os.listdir(tmp_path) == ["b.exr"]
+
+
+def test_truncated_file_gives_clear_error(tmp_path):
+    path = str(tmp_path / "c.exr")
+    imageio.write_layers(path, {"Combined": np.random.default_rng(1).random((64, 64, 4))})
+    data = open(path, "rb").read()
+    bad = tmp_path / "trunc.exr"
+    bad.write_bytes(data[: len(data) // 2])
+    with pytest.raises(imageio.ImageFileError) as exc:
+        imageio.read_layers(str(bad))
+    assert "trunc.exr" in str(exc.value)
+    junk = tmp_path / "junk.exr"
+    junk.write_bytes(b"not an image at all" * 10)
+    with pytest.raises(imageio.ImageFileError):
+        imageio.read_layers(str(junk))
+    with pytest.raises(imageio.ImageFileError, match="no such file"):
+        imageio.read_layers(str(tmp_path / "missing.exr"))
+
+
+def test_reference_without_rgb_is_refused(tmp_path):
+    path = str(tmp_path / "d.exr")
+    imageio.write_layers(path, {"Depth": np.ones((3, 3))})
+    with pytest.raises(imageio.ImageFileError, match="no Combined"):
+        imageio.read_rgb(path)
+
+
+def test_check_writable(tmp_path):
+    p = tmp_path / "e.exr"
+    imageio.check_writable(str(p), overwrite=False)
+    p.write_bytes(b"x")
+    with pytest.raises(imageio.ImageFileError, match="--overwrite"):
+        imageio.check_writable(str(p), overwrite=False)
+    imageio.check_writable(str(p), overwrite=True)
+    with pytest.raises(imageio.ImageFileError, match="does not exist"):
+        imageio.check_writable(str(tmp_path / "nope" / "f.exr"), overwrite=False)

@@ -1,0 +1,120 @@
+"""bpy integration: border renders of sample subsets merge exactly."""
+import numpy as np
+import pytest
+
+bpy = pytest.importorskip("bpy")
+
+from blend_util import build_scene  # noqa: E402
+
+from cycles_adaptive.addon.executor import CyclesExecutor, SceneError, border_pixels  # noqa: E402
+from cycles_adaptive.core import regions  # noqa: E402
+from cycles_adaptive.core.buffers import Buffers  # noqa: E402
+from cycles_adaptive.core.pipeline import AdaptiveRun, Options  # noqa: E402
+
+
+def _render_full(ex, samples, offset=0):
+    color, _ = ex.render(regions.RegionTask(0, 0, ex.size[1], ex.size[0], samples, offset=offset))
+    return color
+
+
+def test_uniform_map_through_planner_and_merge_equals_one_render():
+    scene = build_scene(37, 29)  # odd sizes: border rounding must still be exact
+    with CyclesExecutor(scene, bpy.context.view_layer, ("albedo",), seed=3) as ex:
+        h, w = ex.size
+        one = _render_full(ex, 12)
+        buf = Buffers.empty(h, w, ("albedo",))
+        for off in (0, 2):  # initial pass: two subsets of 2 spp
+            c, f = ex.render(regions.RegionTask(0, 0, w, h, 2, offset=off))
+            buf.merge_group(c[:, :, :3], 2, f)
+        counts = np.full((h, w), 8, np.int64)
+        plan = regions.plan(counts, min_size=8)
+        tasks, nxt = regions.assign_offsets(plan.tasks, np.full((h, w), 4, np.int64))
+        for t in tasks:
+            c, f = ex.render(t)
+            buf.merge_group(c[:, :, :3], t.samples, f, region=(t.x0, t.y0, t.x1, t.y1))
+    assert np.all(buf.n == 12) and np.all(nxt == 12)
+    diff = np.abs(buf.color.mean - one[:, :, :3]).max()
+    assert diff <= 1e-4 * one[:, :, :3].mean()
+
+
+def test_blocky_map_tasks_merge_exactly_per_region():
+    """A map constant on blocks gives several tasks; each region's merge equals
+    the same region of a full-frame render with that many samples."""
+    scene = build_scene(32, 24)
+    with CyclesExecutor(scene, bpy.context.view_layer, (), seed=1) as ex:
+        h, w = ex.size
+        full4 = _render_full(ex, 4)
+        full8 = _render_full(ex, 8)
+        buf = Buffers.empty(h, w, ())
+        c, _ = ex.render(regions.RegionTask(0, 0, w, h, 4, offset=0))
+        buf.merge_group(c[:, :, :3], 4, {})
+        counts = np.zeros((h, w), np.int64)
+        counts[:16, :16] = 4
+        plan = regions.plan(counts, min_size=8)
+        tasks, _ = regions.assign_offsets(plan.tasks, np.full((h, w), 4, np.int64))
+        for t in tasks:
+            c, _ = ex.render(t)
+            buf.merge_group(c[:, :, :3], t.samples, {}, region=(t.x0, t.y0, t.x1, t.y1))
+    assert plan.overshoot == 0
+    np.testing.assert_allclose(buf.color.mean[:16, :16], full8[:16, :16, :3], atol=1e-4 * full8.mean())
+    np.testing.assert_allclose(buf.color.mean[16:, :], full4[16:, :, :3], atol=1e-6)
+
+
+def test_scene_settings_are_restored_even_after_an_error():
+    scene = build_scene(16, 16)
+    r, c = scene.render, scene.cycles
+    before = (r.use_border, r.filepath, r.image_settings.file_format, c.samples, c.sample_offset,
+              c.use_sample_subset, scene.view_layers[0].cycles.denoising_store_passes,
+              r.use_compositing, scene.frame_current)
+    with pytest.raises(RuntimeError):
+        with CyclesExecutor(scene, bpy.context.view_layer, ("albedo", "normal"), seed=1) as ex:
+            _render_full(ex, 2)
+            raise RuntimeError("boom")
+    after = (r.use_border, r.filepath, r.image_settings.file_format, c.samples, c.sample_offset,
+             c.use_sample_subset, scene.view_layers[0].cycles.denoising_store_passes,
+             r.use_compositing, scene.frame_current)
+    assert after == before
+
+
+def test_existing_border_is_the_render_domain():
+    scene = build_scene(40, 30)
+    r = scene.render
+    r.use_border, r.use_crop_to_border = True, False
+    r.border_min_x, r.border_max_x, r.border_min_y, r.border_max_y = 0.25, 0.75, 0.0, 0.5
+    assert border_pixels(scene) == (10, 15, 30, 30)
+    with CyclesExecutor(scene, bpy.context.view_layer, (), seed=1) as ex:
+        assert ex.size == (15, 20)
+        c = _render_full(ex, 2)
+        assert c.shape == (15, 20, 4) and np.isfinite(c).all()
+    assert (r.border_min_x, r.border_max_x) == (0.25, 0.75) and not r.use_crop_to_border
+
+
+@pytest.mark.parametrize("case", ["no_camera", "eevee", "border_outside"])
+def test_bad_scenes_are_refused_with_a_message(case):
+    if case == "no_camera":
+        scene = build_scene(8, 8, camera=False)
+        match = "no active camera"
+    elif case == "eevee":
+        scene = build_scene(8, 8, engine="BLENDER_EEVEE_NEXT")
+        match = "set Render Engine to Cycles"
+    else:
+        scene = build_scene(8, 8)
+        scene.render.use_border = True
+        scene.render.border_min_x = scene.render.border_max_x = 1.0
+        match = "outside the frame"
+    with pytest.raises(SceneError, match=match):
+        CyclesExecutor(scene, bpy.context.view_layer)
+
+
+def test_one_pixel_image_renders():
+    # Blender's smallest resolution is 4x4; a one-pixel border gives a 1x1 image
+    scene = build_scene(4, 4)
+    r = scene.render
+    r.use_border, r.use_crop_to_border = True, True
+    r.border_min_x, r.border_max_x, r.border_min_y, r.border_max_y = 0.25, 0.5, 0.5, 0.75
+    with CyclesExecutor(scene, bpy.context.view_layer, ("albedo", "normal", "depth"), seed=0) as ex:
+        run = AdaptiveRun(ex, Options(method="uniform", spp=4, initial_spp=4, subsets=2))
+        for _ in run.steps():
+            pass
+    assert run.buffers.shape == (1, 1)
+    assert run.buffers.n.sum() == 4 and np.isfinite(run.reconstruct().image).all()
