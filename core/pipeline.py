@@ -17,11 +17,18 @@ tests share one function.  ``finish()`` reconstructs from whatever has been
 rendered, so a cancel keeps every sample.
 
 Budget accounting: ``spp`` is the mean samples per pixel of the whole run,
-initial pass included.  The loop stops when fewer than 0.5 % of the budget
+initial pass included.  The loop stops when fewer than 0.9 % of the budget
 remains, and never plans more than what remains, so the total is within 1 %.
+
+Task cost: the planner trades the fixed cost of one region render against the
+samples spent beyond the map by rounding up to rectangles.  ``Options.task_cost``
+(pixel-samples) sets it; it is a setting, not a timing measured during the run,
+so a run is deterministic: the same seed and budget give the same tasks and the
+same image, and a resumed run ends exactly where an uninterrupted one does.
 """
 from __future__ import annotations
 
+import copy
 import json
 import os
 import pickle
@@ -36,6 +43,7 @@ from .buffers import Buffers, Stat
 from .method import allocate, params_from_dict
 
 CHECKPOINT_VERSION = 1
+TOP_UP = 3
 
 
 @dataclass
@@ -54,6 +62,8 @@ class Options:
     frame: int = 0
     seed: int = 0
     min_task_size: int = 8
+    #: fixed cost of one region render in pixel-samples (see regions.plan)
+    task_cost: float = regions.DEFAULT_TASK_COST
     max_seconds: float = 0.0  # 0: no time budget
     params: dict = field(default_factory=dict)
     features: tuple = ()      # extra passes to read beyond the method's own
@@ -136,20 +146,20 @@ class AdaptiveRun:
         if self.buffers is None:
             yield from self._initial_pass()
             self._save_checkpoint()
-        tol = max(1, int(0.005 * self.budget))
-        while self.iteration < opts.iterations and self.remaining > tol:
+        tol = max(1, int(0.009 * self.budget))  # the total lands within 1 % of the budget
+        # up to TOP_UP extra iterations spend what rounding to rectangles left over
+        while self.iteration < opts.iterations + TOP_UP and self.remaining > tol:
             if opts.max_seconds and time.perf_counter() - t_start > opts.max_seconds:
                 yield Progress("plan", self.iteration, self._fraction(), "time budget reached")
                 break
             if not getattr(self.method, "ADAPTIVE", True):
                 budget = self.remaining
             else:
-                left = opts.iterations - self.iteration
+                left = max(1, opts.iterations - self.iteration)
                 budget = self.remaining if left <= 1 else int(self.remaining / left)
             t0 = time.perf_counter()
             result = self.method.reconstruct(self.buffers, self.params)
-            counts = self.method.sample_map(self.buffers, result, budget, self.params, self.method_state)
-            tasks, covered = self._plan_within(counts, budget, self.remaining)
+            tasks, covered, counts = self._plan_iteration(result, budget)
             self.timing.adapt += time.perf_counter() - t0
             if not tasks:
                 break
@@ -191,7 +201,8 @@ class AdaptiveRun:
     def _render_task(self, task) -> None:
         t0 = time.perf_counter()
         color, feats = self.executor.render(task)
-        self.timing.render += time.perf_counter() - t0
+        dt = time.perf_counter() - t0
+        self.timing.render += dt
         t0 = time.perf_counter()
         color = np.asarray(color, np.float64)
         feats = dict(feats)
@@ -203,26 +214,52 @@ class AdaptiveRun:
         self.tasks_rendered += 1
         self.timing.overhead += time.perf_counter() - t0
 
-    def _plan_within(self, counts, budget: int, remaining: int):
-        """Plan ``counts``; if rounding up to rectangles overshoots what remains,
-        shrink the map and plan again (a few times), then drop the last tasks."""
-        counts = np.asarray(counts, np.int64)
-        plan = regions.plan(counts, frame=self.options.frame, min_size=self.options.min_task_size)
-        target = min(budget, remaining)
-        for _ in range(4):
-            excess = int(plan.covered.sum()) - remaining
-            if excess <= 0:
+    def _plan_iteration(self, result, budget: int):
+        """Ask the method for ``budget`` samples and plan them into tasks.
+
+        The planner rounds a sparse map up to rectangles when that is cheaper
+        than many small renders (the rounded-up samples are rendered and used,
+        and counted against the budget).  So the budget handed to the method is
+        adjusted (secant steps on a copy of the method's state) until what the
+        tasks cover fits this iteration's share (+10 %) and never exceeds what
+        remains.  Returns (tasks, covered, counts); the method state of the
+        accepted map is kept.
+        """
+        remaining = self.remaining
+        final = budget >= remaining
+        limit = remaining if final else min(remaining, int(np.ceil(1.1 * budget)))
+        ask = budget
+        best = None
+        for _ in range(6):
+            state = copy.deepcopy(self.method_state)
+            counts = np.asarray(self.method.sample_map(self.buffers, result, max(ask, 0), self.params,
+                                                       state), np.int64)
+            plan = regions.plan(counts, frame=self.options.frame, min_size=self.options.min_task_size,
+                                task_cost=self.options.task_cost)
+            cov = int(plan.covered.sum())
+            if cov <= limit and (best is None or cov > best[1].covered.sum()):
+                best = (counts, plan, state)
+            if cov <= limit and cov >= 0.9 * min(budget, limit):
                 break
-            shrink = max(1, int(target - excess * 1.1))
-            counts = allocate(counts.astype(np.float64), shrink)
-            plan = regions.plan(counts, frame=self.options.frame, min_size=self.options.min_task_size)
-        tasks = list(plan.tasks)
-        covered = plan.covered.copy()
-        while tasks and int(covered.sum()) > remaining:
+            if cov <= 0:
+                break
+            ask = int(ask * min(budget, limit) / cov * (0.97 if cov > limit else 1.0))
+            if ask <= 0:
+                break
+        if best is None:  # even small maps round up past the limit: plan exactly
+            state = copy.deepcopy(self.method_state)
+            counts = np.asarray(self.method.sample_map(self.buffers, result, max(limit, 0), self.params,
+                                                       state), np.int64)
+            plan = regions.plan(counts, frame=self.options.frame, min_size=1, task_cost=0.0)
+            best = (counts, plan, state)
+        counts, plan, state = best
+        self.method_state = state
+        tasks, covered = list(plan.tasks), plan.covered.copy()
+        while tasks and int(covered.sum()) > limit:
             t = tasks.pop()
             covered[t.y0:t.y1, t.x0:t.x1] -= t.samples
-        self.overshoot += int(covered.sum() - min(counts.sum(), covered.sum()))
-        return tasks, covered
+        self.overshoot += max(0, int(covered.sum()) - int(counts.sum()))
+        return tasks, covered, counts
 
     # ----------------------------------------------------------------- result
     def reconstruct(self):
