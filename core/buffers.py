@@ -219,14 +219,16 @@ def _region_slice(region, shape):
 
 
 def _chan_update(stat: Stat, sl, mean_b, wb, cross, m2_b=None):
-    """Chan et al. parallel update of ``stat[sl]`` with group b, in place."""
-    mean_a = stat.mean[sl]
-    delta = mean_b - mean_a
-    stat.mean[sl] = mean_a + delta * wb
-    upd = stat.m2[sl] + delta * delta * cross
-    if m2_b is not None:
-        upd = upd + m2_b
-    stat.m2[sl] = upd
+    """Chan et al. parallel update of ``stat[sl]`` with group b, in place.
+    Non-finite input propagates as it is (methods sanitise); no warnings."""
+    with np.errstate(invalid="ignore", over="ignore"):
+        mean_a = stat.mean[sl]
+        delta = mean_b - mean_a
+        stat.mean[sl] = mean_a + delta * wb
+        upd = stat.m2[sl] + delta * delta * cross
+        if m2_b is not None:
+            upd = upd + m2_b
+        stat.m2[sl] = upd
 
 
 def luminance(rgb: np.ndarray) -> np.ndarray:
