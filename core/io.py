@@ -40,20 +40,38 @@ def read_layers(path: str) -> tuple[dict, dict]:
     inp = oiio.ImageInput.open(path)
     if inp is None:
         raise ImageFileError(f"{path}: cannot open as an image ({_oiio_error()})")
+    # Every part of a multi-part EXR: Blender 5.0 writes multilayer EXRs as one
+    # part per pass unless ``use_exr_interleave`` is set (reading part 0 alone
+    # gives only Combined).
+    columns, names, attrs = [], [], {}
+    size = None
     try:
-        spec = inp.spec()
-        pixels = inp.read_image(0, 0, 0, spec.nchannels, "float")
-        if pixels is None:
-            raise ImageFileError(f"{path}: unreadable pixel data, the file is truncated or "
-                                 f"corrupt ({_oiio_error(inp)})")
-        pixels = np.asarray(pixels, np.float32).reshape(spec.height, spec.width, spec.nchannels)
-        names = list(spec.channelnames)
-        attrs = {}
-        for a in spec.extra_attribs:
-            if isinstance(a.value, str):
-                attrs[a.name] = a.value
+        sub = 0
+        while inp.seek_subimage(sub, 0):
+            spec = inp.spec()
+            if size is None:
+                size = (spec.height, spec.width)
+            elif (spec.height, spec.width) != size:
+                raise ImageFileError(f"{path}: part {sub} is {spec.width}x{spec.height}, part 0 is "
+                                     f"{size[1]}x{size[0]}")
+            px = inp.read_image(sub, 0, 0, spec.nchannels, "float")
+            if px is None:
+                raise ImageFileError(f"{path}: unreadable pixel data, the file is truncated or "
+                                     f"corrupt ({_oiio_error(inp)})")
+            px = np.asarray(px, np.float32).reshape(spec.height, spec.width, spec.nchannels)
+            for c, name in enumerate(spec.channelnames):
+                columns.append(px[:, :, c])
+                names.append(name)
+            for a in spec.extra_attribs:
+                if isinstance(a.value, str):
+                    attrs.setdefault(a.name, a.value)
+            sub += 1
     finally:
         inp.close()
+    if not names:
+        raise ImageFileError(f"{path}: no image data")
+    pixels = np.stack(columns, axis=-1)
+    spec_w, spec_h = size[1], size[0]
     groups: dict = {}
     layer = ""
     for i, name in enumerate(names):
@@ -67,7 +85,7 @@ def read_layers(path: str) -> tuple[dict, dict]:
             pname, ch = "", parts[0]
         groups.setdefault(pname, []).append((i, ch))
     passes = {k: pixels[:, :, [i for i, _ in v]] for k, v in groups.items()}
-    meta = {"width": spec.width, "height": spec.height, "layer": layer,
+    meta = {"width": spec_w, "height": spec_h, "layer": layer,
             "channels": {k: [c for _, c in v] for k, v in groups.items()}, "attributes": attrs}
     return passes, meta
 

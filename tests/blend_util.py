@@ -7,6 +7,9 @@ def build_scene(width=40, height=32, engine="CYCLES", camera=True):
     texture, a glossy sphere, a diffuse cube, an area light, a camera."""
     bpy.ops.wm.read_factory_settings(use_empty=True)
     scene = bpy.context.scene
+    if engine == "EEVEE":  # 4.2-4.5 call it BLENDER_EEVEE_NEXT, 5.0 BLENDER_EEVEE again
+        items = scene.render.bl_rna.properties["engine"].enum_items.keys()
+        engine = "BLENDER_EEVEE_NEXT" if "BLENDER_EEVEE_NEXT" in items else "BLENDER_EEVEE"
     scene.render.engine = engine
     if engine == "CYCLES":
         scene.cycles.device = "CPU"

@@ -64,14 +64,14 @@ def test_scene_settings_are_restored_even_after_an_error():
     scene = build_scene(16, 16)
     r, c = scene.render, scene.cycles
     before = (r.use_border, r.filepath, r.image_settings.file_format, c.samples, c.sample_offset,
-              c.use_sample_subset, scene.view_layers[0].cycles.denoising_store_passes,
+              getattr(c, "use_sample_subset", None), scene.view_layers[0].cycles.denoising_store_passes,
               r.use_compositing, scene.frame_current)
     with pytest.raises(RuntimeError):
         with CyclesExecutor(scene, bpy.context.view_layer, ("albedo", "normal"), seed=1) as ex:
             _render_full(ex, 2)
             raise RuntimeError("boom")
     after = (r.use_border, r.filepath, r.image_settings.file_format, c.samples, c.sample_offset,
-             c.use_sample_subset, scene.view_layers[0].cycles.denoising_store_passes,
+             getattr(c, "use_sample_subset", None), scene.view_layers[0].cycles.denoising_store_passes,
              r.use_compositing, scene.frame_current)
     assert after == before
 
@@ -95,7 +95,7 @@ def test_bad_scenes_are_refused_with_a_message(case):
         scene = build_scene(8, 8, camera=False)
         match = "no active camera"
     elif case == "eevee":
-        scene = build_scene(8, 8, engine="BLENDER_EEVEE_NEXT")
+        scene = build_scene(8, 8, engine="EEVEE")
         match = "set Render Engine to Cycles"
     else:
         scene = build_scene(8, 8)
