@@ -1,0 +1,882 @@
+"""``awr``: adaptive wavelet rendering (Overbeck, Donner, Ramamoorthi 2009).
+
+Paper: ``../shared/papers/awr-overbeck2009-adaptive-wavelet-rendering.txt``.
+Wavelet machinery (Appendix A filter banks, non-standard DWT, squared-filter
+variance propagation of Eq. 9-10) lives in ``core/wavelets.py``.
+
+Reconstruction (Sec. 4.2)
+-------------------------
+``reconstruct``/``denoise``: DWT of the pixel means (Eq. 7), the error of every
+wavelet coefficient ``Delta = sqrt(<sigma^2(B), Psi^2>)`` (Eq. 10) by a full DWT
+of the per-pixel variance with the squared filters renormalised to sum to
+``2**-1/2`` (``recon_filter_sum``), the soft threshold
+``W = sign(W~) max(0, |W~| - c_s Delta)`` (Eq. 11, ``c_s = smoothing = 1``) and
+synthesis.  The coarsest scale coefficients are kept as they are.
+
+Functional variance from sample subsets (Eq. 5, 6, 10)
+------------------------------------------------------
+The paper keeps each pixel's min and max sample ``I_min, I_max``; Cycles gives
+neither, only ``K`` subset means, from which ``Buffers`` gives the per-sample
+variance ``s^2 = M2 / (k - 1)`` and the count ``N``.  We replace the range by its
+expectation for ``N`` samples of a normal distribution with that variance::
+
+    I_max - I_min  ~  d2(N) s,      d2(N) = E[range of N standard normal samples]
+
+(``d2`` is the expected range of ``N`` standard normal samples, the quality
+control constant: exact by quadrature up to ``N = 64``, Blom's approximation
+above; ``N < 2`` uses ``d2(2)``).  Hence
+
+* Eq. 10 (reconstruction): ``sigma^2(F) = (I_max - I_min)^2 = d2(N)^2 s^2`` and,
+  by Eq. 6, ``sigma^2(B) = d2(N)^2 s^2 / N = d2(N)^2 Var(mean)``;
+* Eq. 5 (sampler): with ``I_max + I_min = 2 mu`` (symmetric spread about the pixel
+  mean ``mu``) the squared Mitchell contrast is
+  ``min(1, d2(N)^2 s^2 / (2 mu)^2)`` per colour channel, and the pixel takes
+  the largest of R, G, B (Mitchell tests each channel and refines when any one
+  exceeds its threshold).  The cap 1 is the contrast of samples that reach 0
+  (non-negative radiance has ``I_min >= 0``, so the contrast cannot exceed 1).
+  ``s = 0`` gives 0 and ``mu = 0, s > 0`` gives 1.
+
+Like the paper's range, this grows slowly with ``N`` (the range of more samples
+is wider), so it keeps the paper's balance between thresholds and noise: with
+``c_s = 1`` the level-1 threshold is ~1.5 (N = 4) to ~2.5 (N = 16) noise
+standard deviations and halves every two levels.
+
+Variance unknown (``k < 2``, variance ``+inf``) or non-finite: the per-pixel
+variance of the mean is replaced by the noise level of the image itself,
+Donoho's median estimator ``(median |W2_1| / 0.6745)^2`` of the finest diagonal
+wavelets, per channel, divided by the squared high-pass gain; such pixels are
+counted in ``info["unknown_variance_pixels"]``.  Pixels with no samples or
+non-finite means are filled from their neighbours (pull-push over a 2 x 2
+pyramid, value and variance) and counted in ``info["missing_pixels"]``.  Values
+are clamped to ``|x| <= 1e100`` and variances to ``<= 1e200`` so that squares of
+coefficients stay finite.
+
+Error estimate (``MethodResult.error``)
+---------------------------------------
+Stein's unbiased risk estimate of each soft-thresholded coefficient,
+``sigma_w^2 - 2 sigma_w^2 [|w| <= t] + min(w^2, t^2)`` with ``t = c_s Delta`` and
+``sigma_w^2`` the coefficient's actual variance ``<Var(mean), Psi^2>`` (natural
+squared filters; obtained from ``Delta^2`` by dividing out the renormalisation
+and ``d2(N)^2``, the latter as its ``Psi^2``-weighted mean over the support when
+``N`` varies, which is exact where ``N`` is locally constant and saves one
+transform per channel), plus the variance of the untouched coarse coefficients,
+propagated to pixels by a synthesis with squared synthesis filters (coefficient
+errors taken as uncorrelated), clamped at 0 and averaged over RGB.
+
+Adaptive sampling (Sec. 4.1) mapped to region renders
+----------------------------------------------------
+``sample_map`` plays Steps 2-4 of Fig. 4 for one render iteration of
+``budget`` samples (Step 1, the initial 4 spp, is the render loop's first pass):
+
+1. Per pixel ``sigma^2(B) = sigma^2_Mitchell(F) / N`` (Eq. 5, 6, above); the
+   sampler's intensity image is the luminance of the pixel means, scaled so its
+   median is ``sampler_intensity`` (0.5).  Eq. 8 subtracts squared intensities
+   from the unit-free contrast variance, so its balance depends on the intensity
+   scale; the paper renders display-range intensities, and fixing the median
+   makes the sampler invariant to exposure.
+2. Priorities of all scale coefficients of levels ``0..sample_levels`` (5):
+   ``P(S_k) = sigma^2(S_k) - (W~_k)^2`` (Eq. 8), ``sigma^2(S_k)`` from the squared
+   low-pass DWT renormalised to 1.05 (Eq. 9), ``(W~_k)^2`` the mean of the three
+   squared level-k wavelets at the same ``(i, j)`` (Eq. 7).  Pixels (level 0)
+   have no wavelets, so their priority is their variance (choice: the paper
+   defines wavelets only for ``k >= 1``).
+3. The highest-priority coefficients get ``batch_base * 2**k`` (64 x 2^k)
+   samples each until the round's share of the budget is spent (the last batch
+   is cut to fit).  Cycles cannot place single samples, so a batch becomes
+   expected per-pixel counts over the coefficient's support following the
+   separable profile ``|phi_k(x)| |phi_k(y)|`` (Fig. 5; the absolute value is
+   the importance density for the signed weight of Eq. 4; profile mass outside
+   the image is folded back by renormalising over the pixels inside).
+4. Priorities are updated between ``rounds`` (16) rounds with the *predicted*
+   variance ``sigma^2(F) / (N + planned)`` (the functional variance is a
+   per-sample property, the counts are known); the paper updates after every
+   popped coefficient, which one pop per round reproduces.  New wavelet values
+   arrive with the next iteration's samples.
+5. The expected counts become integers by ordered dithering (every pixel gets
+   the floor or ceiling of its expectation, the extra samples stratified over
+   8 x 8 blocks, pattern shifted each iteration: a stratified version of the
+   paper's random importance-sampled positions, which would leave Poisson
+   holes), corrected to sum to ``budget`` exactly.  The render loop turns the
+   map into region renders.
+
+If every priority is equal (no information, e.g. an all-black image) the budget
+is spread uniformly.  Unknown variance (``k < 2``) uses the fallback above.
+
+Observed behaviour: pixels (level 0) compete with their own variance while
+coarse coefficients compete with ``1.05^(2k)`` times an *average* variance minus
+``W~^2``, whose noise part is about the variance of the mean.  Where per-pixel
+variance estimates are heterogeneous (few subsets, uneven counts) the noisiest
+pixels outrank coarse coefficients and take 64-sample batches; where the
+contrast is uniformly high (binary visibility: penumbrae, defocus) coarse
+levels win as in the paper's Fig. 3.  ``sample_filter_sum`` trades between the
+two (higher: coarser).
+
+Cost: reconstruction is 3 transforms per channel (analysis, squared-filter
+variance analysis, synthesis) plus one squared synthesis for the error, linear
+in pixels; peak memory about 260 bytes per pixel (channels run in parallel
+threads, ``threads``).
+"""
+from __future__ import annotations
+
+import math
+import os
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass, field
+from functools import lru_cache
+
+import numpy as np
+
+from . import wavelets as wv
+from .buffers import Buffers, LUMA
+from .method import MethodResult, allocate
+
+PASSES: tuple = ()
+
+_BIG_VALUE = 1e100
+_BIG_VAR = 1e200
+_MAD_SCALE = 0.6744897501960817  # Phi^-1(3/4)
+
+
+def _f(default, help_, lo=None, hi=None, **extra):
+    md = {"help": help_, "min": lo, "max": hi}
+    md.update(extra)
+    return field(default=default, metadata=md)
+
+
+@dataclass
+class Params:
+    """AWR parameters with the paper's defaults (Sec. 5.3: "we use the
+    Daubechies 9/7 filter bank, 64 x 2^k rays per adaptive iteration, c_s = 1,
+    sampling variance filters renormalised to 1.05 and reconstruction variance
+    filters to 2^-1/2")."""
+
+    wavelet: str = _f(
+        "cdf97", "Filter bank: cdf97 (paper default, smoothest), legall53 (faster, some "
+        "artifacts) or haar (fastest, blocky); speed vs smoothness (Fig. 8)",
+        choices=("cdf97", "legall53", "haar"))
+    smoothing: float = _f(
+        1.0, "c_s of Eq. 11: threshold = c_s x coefficient error; larger removes more "
+        "noise but may ring or blur edges", 0.0, 10.0)
+    recon_filter_sum: float = _f(
+        2.0 ** -0.5, "Sum of the squared reconstruction filters (paper 2^-1/2); lower damps "
+        "smoothing at coarse levels (fewer artifacts, more low-frequency noise)", 0.01, 2.0)
+    sample_filter_sum: float = _f(
+        1.05, "Sum of the squared sampler low-pass filter (Eq. 9, paper 1.05); above 1 "
+        "sends samples to coarser levels", 0.5, 2.0)
+    levels: int = _f(
+        0, "Wavelet levels for reconstruction, 0 = full depth (paper); fewer levels are "
+        "slightly faster but leave low-frequency noise", 0, 30)
+    sample_levels: int = _f(
+        5, "Coarsest scale-coefficient level the sampler considers (paper 0..5); more "
+        "levels allow coarser, smoother sampling", 0, 12)
+    batch_base: int = _f(
+        64, "Samples per chosen coefficient are batch_base x 2^level (paper 64); larger "
+        "batches adapt less finely but plan faster", 1, 1 << 20)
+    rounds: int = _f(
+        16, "Priority updates per render iteration (paper: after every coefficient); "
+        "more rounds follow the paper more closely at O(pixels) cost each", 1, 4096)
+    sampler_intensity: float = _f(
+        0.5, "Median luminance the sampler maps the image to before Eq. 8; higher weighs "
+        "edges (wavelet magnitude) more against variance", 1e-3, 1e3)
+    seed: int = _f(0, "Seed for breaking ties between equal priorities (reproducibility only)",
+                   0, 2 ** 31 - 1)
+    threads: int = _f(
+        0, "Worker threads for the per-channel transforms (0 = one per core, at most 3); "
+        "speed only", 0, 64)
+
+
+# ----------------------------------------------------------------------------
+# Functional variance from sample subsets
+# ----------------------------------------------------------------------------
+_ACK_A = (-3.969683028665376e+01, 2.209460984245205e+02, -2.759285104469687e+02,
+          1.383577518672690e+02, -3.066479806614716e+01, 2.506628277459239e+00)
+_ACK_B = (-5.447609879822406e+01, 1.615858368580409e+02, -1.556989798598866e+02,
+          6.680131188771972e+01, -1.328068155288572e+01)
+_ACK_C = (-7.784894002430293e-03, -3.223964580411365e-01, -2.400758277161838e+00,
+          -2.549671010135738e+00, 4.374664141464968e+00, 2.938163982698783e+00)
+_ACK_D = (7.784695709041462e-03, 3.224671290700398e-01, 2.445134137142996e+00,
+          3.754408661907416e+00)
+
+
+def _norm_ppf_upper(p: np.ndarray) -> np.ndarray:
+    """Standard normal quantile for ``0.5 <= p < 1`` (Acklam's rational
+    approximation, relative error < 1.2e-9)."""
+    p = np.clip(np.asarray(p, np.float64), 0.5, 1.0 - 1e-300)
+    out = np.empty_like(p)
+    central = p <= 0.97575
+    q = p[central] - 0.5
+    r = q * q
+    a, b = _ACK_A, _ACK_B
+    out[central] = ((((((a[0] * r + a[1]) * r + a[2]) * r + a[3]) * r + a[4]) * r + a[5]) * q
+                    / (((((b[0] * r + b[1]) * r + b[2]) * r + b[3]) * r + b[4]) * r + 1.0))
+    q = np.sqrt(-2.0 * np.log1p(-p[~central]))
+    c, d = _ACK_C, _ACK_D
+    out[~central] = -((((((c[0] * q + c[1]) * q + c[2]) * q + c[3]) * q + c[4]) * q + c[5])
+                      / ((((d[0] * q + d[1]) * q + d[2]) * q + d[3]) * q + 1.0))
+    return out
+
+
+@lru_cache(maxsize=1)
+def _range_table(nmax: int = 64) -> np.ndarray:
+    """Exact ``d2(N)`` for ``N = 0..nmax`` by quadrature of
+    ``E[R] = int 1 - Phi(x)^N - (1 - Phi(x))^N dx`` (entries 0, 1 unused)."""
+    x = np.linspace(-9.0, 9.0, 3601)
+    cdf = 0.5 * (1.0 + np.vectorize(math.erf)(x / math.sqrt(2.0)))
+    ns = np.arange(nmax + 1, dtype=np.float64)[:, None]
+    f = 1.0 - cdf[None, :] ** ns - (1.0 - cdf[None, :]) ** ns
+    return np.trapz(f, x, axis=1)
+
+
+def expected_range(n) -> np.ndarray:
+    """``d2(N)``: expected range ``E[max - min]`` of ``N`` standard normal samples.
+
+    Exact (quadrature) for integer ``N <= 64``, otherwise Blom's approximation
+    ``2 Phi^-1((N - 0.375) / (N + 0.25))`` scaled by 1.003 to join the exact
+    value at 64;
+    ``N < 2`` (and non-finite ``N``) use ``N = 2``.  Stands in for Eq. 5 and
+    10's ``I_max - I_min`` as ``d2(N) s`` (module docstring).
+
+    n : array_like of sample counts -> same shape, float64 >= 1.128
+    """
+    n = np.asarray(n, np.float64)
+    n = np.where(np.isfinite(n), np.clip(n, 2.0, 1e15), 2.0)
+    table = _range_table()
+
+    blom = lambda v: 2.0 * _norm_ppf_upper((v - 0.375) / (v + 0.25))
+    top = len(table) - 1
+    join = table[top] / float(blom(np.array([float(top)]))[0])
+
+    def direct(v):
+        out = join * blom(v)  # continuous (and monotone) at N = 64
+        small = (v <= 64) & (v == np.floor(v))
+        if small.any():
+            out[small] = table[v[small].astype(np.int64)]
+        return out
+
+    if n.size > 64:  # few distinct counts: evaluate once per count
+        lo, hi = float(n.min()), float(n.max())
+        if lo == hi:
+            return np.full(n.shape, float(direct(np.array([lo]))[0]))
+        if hi - lo <= 1 << 20 and np.array_equal(n, np.floor(n)):
+            tab = direct(np.arange(int(lo), int(hi) + 1, dtype=np.float64))
+            return tab[n.astype(np.int64) - int(lo)]
+    return direct(np.atleast_1d(n)).reshape(n.shape)
+
+
+def mitchell_variance(mean: np.ndarray, sample_var: np.ndarray, n) -> np.ndarray:
+    """Squared Mitchell contrast ``(I_max - I_min)^2 / (I_max + I_min)^2`` (Eq. 5).
+
+    With ``I_max - I_min = d2(N) s`` and ``I_max + I_min = 2 |mu|``, capped at 1.
+
+    mean, sample_var : (H, W, C) per-channel pixel mean and per-sample variance
+    n : (H, W) sample counts
+    Returns (H, W) float64 in [0, 1], the largest over channels.
+    """
+    d2 = expected_range(n)[..., None]
+    num = d2 * d2 * np.maximum(sample_var, 0.0)
+    den = 4.0 * mean * mean
+    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
+        c2 = np.where(num >= den, (num > 0).astype(np.float64), num / np.where(den > 0, den, 1.0))
+    c2 = np.where(np.isfinite(c2), c2, 1.0)
+    return c2.max(axis=-1)
+
+
+# ----------------------------------------------------------------------------
+# Input hygiene
+# ----------------------------------------------------------------------------
+def _pull_push(x: np.ndarray, valid: np.ndarray, default: float = 0.0) -> np.ndarray:
+    """Fill ``x`` where ``valid`` is False from valid neighbours (pull-push over a
+    2 x 2 box pyramid).  x, valid : (H, W, C)."""
+    if valid.all():
+        return x
+    vals = [np.where(valid, x, 0.0)]
+    wts = [valid.astype(np.float64)]
+    while (vals[-1].shape[0] > 1 or vals[-1].shape[1] > 1) and not (wts[-1] > 0).all():
+        v, w = vals[-1], wts[-1]
+        h, wd = v.shape[:2]
+        ph, pw = h % 2, wd % 2
+        if ph or pw:
+            v = np.pad(v, ((0, ph), (0, pw), (0, 0)))
+            w = np.pad(w, ((0, ph), (0, pw), (0, 0)))
+        v = v[0::2, 0::2] + v[1::2, 0::2] + v[0::2, 1::2] + v[1::2, 1::2]
+        w = w[0::2, 0::2] + w[1::2, 0::2] + w[0::2, 1::2] + w[1::2, 1::2]
+        vals.append(v)
+        wts.append(w)
+    est = np.where(wts[-1] > 0, vals[-1] / np.where(wts[-1] > 0, wts[-1], 1.0), default)
+    for v, w in zip(reversed(vals[:-1]), reversed(wts[:-1])):
+        h, wd = v.shape[:2]
+        up = np.repeat(np.repeat(est, 2, axis=0), 2, axis=1)[:h, :wd]
+        est = np.where(w > 0, v / np.where(w > 0, w, 1.0), up)
+    return np.where(valid, x, est)
+
+
+def _mad_pixel_variance(img: np.ndarray, bank: wv.FilterBank) -> np.ndarray:
+    """Per-channel pixel noise variance from the finest wavelets (Donoho's MAD).
+
+    img : (H, W, C) -> (C,) float64 >= 0; 0 for a 1 x 1 image.
+    """
+    c = img.shape[-1]
+    pyr = wv.dwt2(img, bank, levels=1)
+    if not pyr.details:
+        return np.zeros(c)
+    w0, w1, w2 = pyr.details[0]
+    hi2 = float(np.sum(wv.squared_bank(bank).full("hi_a")[1]))
+    if w2.size:
+        coef, gain = w2, hi2 * hi2
+    else:
+        coef, gain = (w0 if w0.size else w1), hi2
+    med = np.median(np.abs(coef.reshape(-1, c)), axis=0)
+    return (med / _MAD_SCALE) ** 2 / gain
+
+
+@dataclass
+class _Prepared:
+    mean: np.ndarray        # (H, W, 3) finite, clamped, missing pixels filled
+    var: np.ndarray         # (H, W, 3) finite >= 0 variance of the mean
+    n: np.ndarray           # (H, W) sample counts (0 where none)
+    missing: np.ndarray     # (H, W) bool: no samples or non-finite mean
+    unknown: np.ndarray     # (H, W) bool: variance estimated by the MAD fallback
+
+
+def _prepare(mean, var, n, bank) -> _Prepared:
+    mean = np.asarray(mean, np.float64)
+    if mean.ndim == 2:
+        mean = mean[..., None]
+    h, w, c = mean.shape
+    n = np.broadcast_to(np.asarray(n, np.float64), (h, w))
+    n = np.where(np.isfinite(n) & (n > 0), n, 0.0)
+    var = np.broadcast_to(np.asarray(var, np.float64).reshape(h, w, -1), (h, w, c))
+    if (np.isfinite(mean).all() and (n > 0).all() and np.isfinite(var).all()
+            and float(np.abs(mean).max(initial=0.0)) <= _BIG_VALUE
+            and float(var.min(initial=0.0)) >= 0.0 and float(var.max(initial=0.0)) <= _BIG_VAR):
+        none = np.zeros((h, w), bool)
+        return _Prepared(mean, var, n, none, none)
+    missing = ~np.isfinite(mean).all(axis=-1) | (n <= 0)
+    m = np.clip(np.where(np.isfinite(mean), mean, 0.0), -_BIG_VALUE, _BIG_VALUE)
+    valid3 = np.broadcast_to(~missing[..., None], m.shape)
+    if missing.any():
+        m = _pull_push(m, valid3)
+    known = np.isfinite(var) & (var >= 0) & valid3
+    v = np.where(known, np.minimum(np.where(known, var, 0.0), _BIG_VAR), 0.0)
+    unknown = ~missing & ~known.all(axis=-1)
+    if unknown.any() or (missing.any() and not known.any()):
+        mad = np.minimum(_mad_pixel_variance(m, bank), _BIG_VAR)
+        v = np.where(~known & valid3, mad, v)
+        known = known | valid3
+    if missing.any():
+        v = _pull_push(v, known, default=0.0)
+    return _Prepared(m, v, n, missing, unknown)
+
+
+# ----------------------------------------------------------------------------
+# Reconstruction (Sec. 4.2)
+# ----------------------------------------------------------------------------
+def soft_threshold(w: np.ndarray, t: np.ndarray) -> np.ndarray:
+    """``sign(w) max(0, |w| - t)`` (Eq. 11 with ``t = c_s Delta``)."""
+    return np.sign(w) * np.maximum(np.abs(w) - t, 0.0)
+
+
+def sure_soft(w: np.ndarray, t: np.ndarray, var: np.ndarray) -> np.ndarray:
+    """Stein's unbiased estimate of ``E[(soft(w, t) - w_true)^2]`` for Gaussian
+    noise of variance ``var``: ``var - 2 var [|w| <= t] + min(w^2, t^2)``."""
+    aw = np.abs(w)
+    out = np.minimum(aw, t)
+    out *= out
+    out += np.where(aw <= t, -var, var)
+    return out
+
+
+def _subband_gains(shape, levels, r_lo, r_hi) -> tuple:
+    """Per-subband factors turning natural squared-filter variances into
+    renormalised ones (each 1D application multiplies by ``r`` = target /
+    natural sum; axes of length 1 are not filtered)."""
+    ty, tx = wv.axis_levels(shape[0]), wv.axis_levels(shape[1])
+    acc = 1.0
+    out = []
+    for k in range(1, levels + 1):
+        fy_lo = r_lo if k <= ty else 1.0
+        fx_lo = r_lo if k <= tx else 1.0
+        out.append((acc * fy_lo * r_hi, acc * r_hi * fx_lo, acc * r_hi * r_hi))
+        acc *= fy_lo * fx_lo
+    return out, acc
+
+
+def _denoise_plane(img, rvar, nat_ratio, bank, levels, params):
+    """Eq. 7, 10, 11 and synthesis for one channel.
+
+    img : (H, W) pixel means; rvar : (H, W) ``sigma^2(B)`` of Eq. 10 (range
+    based); nat_ratio : per level (r0, r1, r2) factors (scalars or arrays) that
+    turn the renormalised ``Delta^2`` into the coefficient's actual variance,
+    plus the factor for the coarsest scale coefficients.
+    Returns (image, SURE pyramid, (any coefficient thresholded, zero
+    coefficients after thresholding, coefficients)).
+    """
+    pyr = wv.dwt2(img, bank, levels)
+    r = float(params.recon_filter_sum)
+    dpyr = wv.dwt2_variance(rvar, bank, levels, lo_sum=r, hi_sum=r)
+    det_ratio, approx_ratio = nat_ratio
+    cs = float(params.smoothing)
+    shrunk = False
+    zeroed = total = 0
+    sure_details = []
+    new_details = []
+    for det, dv, rk in zip(pyr.details, dpyr.details, det_ratio):
+        nd, sd = [], []
+        for w, d2b, ra in zip(det, dv, rk):
+            t = np.sqrt(d2b)
+            t *= cs
+            wn = soft_threshold(w, t)
+            shrunk = shrunk or bool(t.any())
+            zeroed += int(w.size - np.count_nonzero(wn))
+            total += w.size
+            nd.append(wn)
+            sd.append(sure_soft(w, t, d2b * ra))
+        new_details.append(tuple(nd))
+        sure_details.append(tuple(sd))
+    sure = wv.Pyramid(dpyr.approx * approx_ratio, sure_details, dpyr.axes)
+    if not shrunk:  # nothing to threshold: the input exactly (not a round trip)
+        return img.copy(), sure, (False, 0, total)
+    out = wv.idwt2(wv.Pyramid(pyr.approx, new_details, pyr.axes), bank)
+    return out, sure, (shrunk, zeroed, total)
+
+
+def _n_threads(params, c):
+    t = int(params.threads) if params.threads else (os.cpu_count() or 1)
+    return max(1, min(t, c))
+
+
+def _natural_ratios(shape, levels, bank, r, d2sq):
+    """Factors from the renormalised range-based ``Delta^2`` to each coefficient's
+    actual variance ``<Var(mean), Psi^2>`` (natural squared filters).
+
+    Renormalising a squared 1D filter multiplies it by ``r / natural sum``, so
+    per subband ``Delta^2 = g * <d2^2 Var, Psi^2_nat>`` with a constant ``g``.
+    The range factor ``d2(N)^2`` is divided out as its ``Psi^2``-weighted mean
+    over the coefficient's support (exact where ``N`` is locally constant; the
+    reconstruction itself uses the exact Eq. 10, only the error estimate uses
+    this ratio).
+    """
+    sq = wv.squared_bank(bank)
+    a = float(np.sum(sq.full("lo_a")[1]))
+    b = float(np.sum(sq.full("hi_a")[1]))
+    g, g_app = _subband_gains(shape, levels, r / a, r / b)
+    if np.ptp(d2sq) == 0:
+        c = float(d2sq.flat[0])
+        return [tuple(1.0 / (c * gi) for gi in gk) for gk in g], 1.0 / (c * g_app)
+    ones, ones_app = _subband_gains(shape, levels, a, b)
+    dp = wv.dwt2_variance(d2sq, bank, levels)
+    det = [tuple(o / (gi * np.maximum(band, 1e-300)) for band, gi, o in zip(db, gk, ok))
+           for db, gk, ok in zip(dp.details, g, ones)]
+    return det, ones_app / (g_app * np.maximum(dp.approx, 1e-300))
+
+
+def wavelet_reconstruct(mean: np.ndarray, var: np.ndarray, n, params: Params | None = None,
+                        ) -> MethodResult:
+    """Adaptive wavelet reconstruction (Sec. 4.2) from arrays.
+
+    Parameters
+    ----------
+    mean : (H, W, 3) pixel means (NaN/Inf allowed: treated as missing)
+    var : (H, W, 3) variance of each pixel mean (``+inf``/NaN: unknown, see the
+        module docstring)
+    n : (H, W) or scalar, samples per pixel (0: missing pixel)
+    params : Params (paper defaults)
+
+    Returns
+    -------
+    MethodResult(image (H, W, 3), error (H, W) estimated squared error, info)
+    """
+    params = params or Params()
+    bank = wv.get_bank(params.wavelet)
+    prep = _prepare(mean, var, n, bank)
+    h, w, c = prep.mean.shape
+    full = wv.max_levels((h, w))
+    levels = full if int(params.levels) <= 0 else min(int(params.levels), full)
+    d2 = expected_range(prep.n)
+    d2sq = d2 * d2
+    ratios = _natural_ratios((h, w), levels, bank, float(params.recon_filter_sum), d2sq)
+
+    def work(ch):
+        img = np.ascontiguousarray(prep.mean[..., ch])
+        rvar = np.minimum(d2sq * prep.var[..., ch], _BIG_VAR)
+        return _denoise_plane(img, rvar, ratios, bank, levels, params)
+
+    nt = _n_threads(params, c)
+    if nt > 1:
+        with ThreadPoolExecutor(nt) as ex:
+            results = list(ex.map(work, range(c)))
+    else:
+        results = [work(ch) for ch in range(c)]
+    image = np.stack([r[0] for r in results], axis=-1)
+    # Error: SURE per coefficient, averaged over channels, squared synthesis.
+    sure = results[0][1]
+    for r in results[1:]:
+        p = r[1]
+        sure.approx = sure.approx + p.approx
+        sure.details = [tuple(a + b for a, b in zip(da, db))
+                        for da, db in zip(sure.details, p.details)]
+    sure.approx = sure.approx / c
+    sure.details = [tuple(b / c for b in d) for d in sure.details]
+    err = wv.idwt2_variance(sure, bank)
+    err = np.where(np.isfinite(err), np.maximum(err, 0.0), _BIG_VAR)
+    if not np.isfinite(image).all():
+        image = np.where(np.isfinite(image), image, 0.0)
+    zeroed = sum(r[2][1] for r in results)
+    total = sum(r[2][2] for r in results)
+    info = {
+        "wavelet": bank.name,
+        "levels": int(levels),
+        "zeroed_fraction": zeroed / total if total else 0.0,
+        "missing_pixels": int(prep.missing.sum()),
+        "unknown_variance_pixels": int(prep.unknown.sum()),
+    }
+    return MethodResult(image, err, info)
+
+
+def _variance_of_mean(buf: Buffers) -> np.ndarray:
+    """``M2 / ((k - 1) n)`` per channel (``Buffers.variance_of_mean`` in one
+    pass); ``+inf`` or NaN (both: unknown) where ``k < 2`` or ``n = 0``."""
+    den = (buf.k - 1.0) * buf.n
+    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
+        inv = np.where((buf.k >= 2) & (buf.n > 0), 1.0 / np.where(den > 0, den, 1.0), np.inf)
+        return buf.color.m2 * inv[..., None]
+
+
+def reconstruct(buf: Buffers, params: Params | None = None) -> MethodResult:
+    """AWR reconstruction of the accumulated samples (Sec. 4.2, Eq. 7, 10, 11).
+
+    Uses ``buf.color.mean``, ``buf.variance_of_mean()`` and ``buf.n``; the
+    functional variance of Eq. 10 is ``d2(N)^2 s^2`` (module docstring).
+    Pixels with fewer than 2 subsets (variance ``+inf``) get the image's own
+    MAD noise estimate; pixels without samples are filled from neighbours.
+
+    Returns
+    -------
+    MethodResult: image (H, W, 3), error (H, W) estimated squared error
+    (SURE, averaged over RGB), info (wavelet, levels, ``zeroed_fraction`` of
+    wavelet coefficients that are zero after Eq. 11, ``missing_pixels``,
+    ``unknown_variance_pixels``).
+    """
+    return wavelet_reconstruct(buf.color.mean, _variance_of_mean(buf), buf.n, params)
+
+
+def denoise(color: np.ndarray, color_var: np.ndarray, features: dict | None = None,
+            params: Params | None = None, spp=16) -> MethodResult:
+    """Wavelet reconstruction of a uniform render alone (the paper's Fig. 10b).
+
+    Parameters
+    ----------
+    color : (H, W, 3) pixel means
+    color_var : (H, W, 3) variance of the pixel means (``+inf``: unknown)
+    features : ignored (AWR uses no feature passes)
+    params : Params
+    spp : samples per pixel of the render (scalar or (H, W)); sets ``d2(N)`` of
+        the range estimate.  Default 16 when unknown.
+    """
+    color = np.asarray(color, np.float64)
+    return wavelet_reconstruct(color, color_var, np.broadcast_to(
+        np.asarray(spp, np.float64), color.shape[:2]), params)
+
+
+# ----------------------------------------------------------------------------
+# Adaptive sampling (Sec. 4.1)
+# ----------------------------------------------------------------------------
+@dataclass
+class _SamplerInputs:
+    sigma_f: np.ndarray      # (H, W) Eq. 5 functional variance (per sample)
+    n: np.ndarray            # (H, W) samples so far
+    wbar2: list              # level 0..K: mean squared wavelets at S_k positions
+    levels: int
+
+
+def _sampler_inputs(buf: Buffers, params: Params) -> _SamplerInputs:
+    bank = wv.get_bank(params.wavelet)
+    prep = _prepare(buf.color.mean, _variance_of_mean(buf), buf.n, bank)
+    h, w = prep.n.shape
+    levels = min(int(params.sample_levels), wv.max_levels((h, w)))
+    s2 = np.minimum(prep.var * np.maximum(prep.n, 1.0)[..., None], _BIG_VAR)
+    sigma_f = np.where(prep.missing, 1.0, mitchell_variance(prep.mean, s2, prep.n))
+    lum = prep.mean @ LUMA
+    pos = lum[lum > 0]
+    med = float(np.median(pos)) if pos.size else 0.0
+    scale = float(params.sampler_intensity) / med if med > 0 and np.isfinite(med) else 1.0
+    lum = np.clip(lum * scale, -_BIG_VALUE, _BIG_VALUE)
+    pyr = wv.dwt2(lum, bank, levels)
+    shapes = wv.level_shapes((h, w), levels)
+    wbar2 = [np.zeros(shapes[0])]
+    for k in range(1, levels + 1):
+        acc = np.zeros(shapes[k])
+        cnt = np.zeros(shapes[k])
+        for band in pyr.details[k - 1]:
+            if band.size:
+                bh, bw = band.shape
+                acc[:bh, :bw] += np.minimum(band * band, _BIG_VAR)
+                cnt[:bh, :bw] += 1.0
+        wbar2.append(acc / np.maximum(cnt, 1.0))
+    return _SamplerInputs(sigma_f, prep.n, wbar2, levels)
+
+
+def _pixel_variance(inp: _SamplerInputs, extra: np.ndarray | None) -> np.ndarray:
+    """Eq. 6: ``sigma^2(B) = sigma^2(F) / N`` with the predicted count ``N``
+    (samples so far plus those planned); a pixel without samples counts as half
+    a sample of maximal contrast."""
+    n = inp.n if extra is None else inp.n + extra
+    return inp.sigma_f / np.maximum(n, 0.5)
+
+
+def priorities(buf: Buffers, params: Params | None = None, planned: np.ndarray | None = None,
+               _inputs: _SamplerInputs | None = None) -> list:
+    """Priority ``P(S_k) = sigma^2(S_k) - (W~_k)^2`` of every scale coefficient
+    (Eq. 8), levels ``k = 0..min(sample_levels, full depth)``.
+
+    ``sigma^2(S_k)`` is Eq. 9 (squared low-pass DWT of the Eq. 5-6 per-pixel
+    variance, renormalised to ``sample_filter_sum``); ``(W~_k)^2`` is the mean of
+    the three squared level-k wavelets of the normalised luminance (0 for
+    pixels).  ``planned`` (H, W) are samples already planned but not rendered;
+    they lower the predicted variance.
+
+    Returns list of (h_k, w_k) float64 arrays.
+    """
+    params = params or Params()
+    inp = _inputs or _sampler_inputs(buf, params)
+    v = _pixel_variance(inp, planned)
+    s2 = wv.scale_variance(v, params.wavelet, inp.levels, lo_sum=float(params.sample_filter_sum))
+    return [s - wb for s, wb in zip(s2, inp.wbar2)]
+
+
+def _profile(bank, k_eff: int):
+    """Importance density of a level-``k_eff`` scale coefficient along one axis:
+    ``|phi_k|`` normalised to sum 1 (Fig. 5).  Returns (start offset, taps)."""
+    if k_eff <= 0:
+        return 0, np.ones(1)
+    start, phi = wv.scale_function(bank, k_eff)
+    p = np.abs(phi)
+    return start, p / p.sum()
+
+
+def _inside_mass(centres: np.ndarray, start: int, prof: np.ndarray, size: int) -> np.ndarray:
+    """Profile mass of each coefficient that falls inside ``[0, size)``."""
+    cum = np.concatenate([[0.0], np.cumsum(prof)])
+    lo = np.clip(-(centres + start), 0, len(prof))
+    hi = np.clip(size - (centres + start), 0, len(prof))
+    return np.where(hi > lo, cum[hi] - cum[np.minimum(lo, hi)], 0.0)
+
+
+@lru_cache(maxsize=32)
+def _spread_matrix(name: str, k_eff: int, n_coef: int, size: int) -> np.ndarray:
+    """Dense (n_coef, size) matrix: row i is coefficient i's density over the
+    axis (profile clipped to the image and renormalised to sum 1)."""
+    start, prof = _profile(name, k_eff)
+    centres = (2 ** k_eff) * np.arange(n_coef)
+    mass = _inside_mass(centres, start, prof, size)
+    mat = np.zeros((n_coef, size))
+    pos = centres[:, None] + start + np.arange(len(prof))[None, :]
+    ok = (pos >= 0) & (pos < size)
+    rows = np.broadcast_to(np.arange(n_coef)[:, None], pos.shape)
+    vals = np.broadcast_to(prof[None, :], pos.shape) / np.where(mass > 0, mass, 1.0)[:, None]
+    mat[rows[ok], pos[ok]] = vals[ok]
+    return mat
+
+
+_DENSE_LIMIT = 1 << 22
+
+
+def _spread_axis(vals: np.ndarray, centres_idx: np.ndarray, k_eff: int, size: int,
+                 bank: wv.FilterBank, n_coef: int) -> np.ndarray:
+    """Spread ``vals`` (rows = coefficients ``centres_idx`` along this axis, any
+    trailing columns) over ``size`` samples: (len(idx), m) -> (size, m)."""
+    if k_eff <= 0:
+        out = np.zeros((size,) + vals.shape[1:])
+        out[centres_idx] = vals
+        return out
+    if n_coef * size <= _DENSE_LIMIT:
+        mat = _spread_matrix(bank.name, k_eff, n_coef, size)[centres_idx]
+        return mat.T @ vals
+    start, prof = _profile(bank, k_eff)
+    centres = (2 ** k_eff) * centres_idx
+    mass = _inside_mass(centres, start, prof, size)
+    v = vals / np.where(mass > 0, mass, 1.0).reshape((-1,) + (1,) * (vals.ndim - 1))
+    out = np.zeros((size,) + vals.shape[1:])
+    for t in range(len(prof)):
+        pos = centres + start + t
+        ok = (pos >= 0) & (pos < size)
+        out[pos[ok]] += prof[t] * v[ok]
+    return out
+
+
+def spread_batches(grid: np.ndarray, level: int, shape, bank="cdf97") -> np.ndarray:
+    """Expected per-pixel counts of level-``level`` coefficient batches.
+
+    Each entry ``grid[i, j]`` (samples for ``S_{k,ij}``) is spread over the
+    coefficient's support with the separable density ``|phi_k(y)| |phi_k(x)|``
+    (Fig. 5), renormalised over the pixels inside the image, so the output sums
+    to ``grid.sum()``.  Axes of length 1 are not spread (``k`` is capped per
+    axis at the levels that axis was actually halved).
+
+    grid : (h_k, w_k) non-negative; shape : (H, W) -> (H, W) float64
+    """
+    bank = wv.get_bank(bank)
+    h, w = int(shape[0]), int(shape[1])
+    grid = np.asarray(grid, np.float64)
+    rows = np.nonzero(grid.any(axis=1))[0]
+    if rows.size == 0:
+        return np.zeros((h, w))
+    ky = min(int(level), wv.axis_levels(h))
+    kx = min(int(level), wv.axis_levels(w))
+    cols = np.arange(grid.shape[1])
+    # along x: (w_k, rows) -> (w, rows), then along y: (rows, w) -> (h, w)
+    tmp = _spread_axis(grid[rows].T, cols, kx, w, bank, grid.shape[1])
+    return _spread_axis(tmp.T, rows, ky, h, bank, grid.shape[0])
+
+
+def plan_samples(buf: Buffers, budget: int, params: Params | None = None,
+                 state: dict | None = None) -> tuple:
+    """Steps 2-4 of Fig. 4 for one iteration: expected counts and the chosen
+    coefficients.
+
+    Returns
+    -------
+    expected : (H, W) float64 expected new samples per pixel, sums to ``budget``
+    chosen : dict of int64/float64 arrays ``level``, ``i``, ``j``, ``samples``
+        (one entry per popped coefficient, grouped by round then level; the
+        coefficient ``S_{level, ij}`` is centred on pixel ``(2^level i,
+        2^level j)``)
+
+    Batches are ``batch_base * 2**level``; the last one of each round is cut to
+    the round's share.  If the image has too few coefficients to absorb the
+    budget (tiny images), the plan is scaled up to sum to ``budget``.
+    """
+    params = params or Params()
+    state = {} if state is None else state
+    rng = state.get("rng")
+    if rng is None:  # the render loop may put its --seed in the state
+        rng = state["rng"] = np.random.default_rng(int(state.get("seed", params.seed) or 0))
+    bank = wv.get_bank(params.wavelet)
+    h, w = buf.shape
+    budget = int(max(budget, 0))
+    planned = np.zeros((h, w))
+    chosen = {"level": [], "i": [], "j": [], "samples": []}
+    empty = {k: np.zeros(0, np.int64 if k != "samples" else np.float64) for k in chosen}
+    if budget == 0 or h * w == 0:
+        return planned, empty
+    inp = _sampler_inputs(buf, params)
+    shapes = wv.level_shapes((h, w), inp.levels)
+    sizes = [a * b for a, b in shapes]
+    offsets = np.concatenate([[0], np.cumsum(sizes)])
+    level_of = np.repeat(np.arange(inp.levels + 1), sizes)
+    batch_of = float(params.batch_base) * np.exp2(level_of)
+    rounds = max(1, min(int(params.rounds), budget))
+    remaining = float(budget)
+    for r in range(rounds):
+        share = remaining / (rounds - r)
+        if share <= 0:
+            break
+        pr = priorities(buf, params, planned, _inputs=inp)
+        flat = np.concatenate([p.ravel() for p in pr])
+        flat = np.where(np.isfinite(flat), flat, -np.inf)
+        if r == 0 and (flat.max() == flat.min()):
+            planned = allocate(np.ones((h, w)), budget).astype(np.float64)
+            return planned, empty
+        m = int(min(flat.size, np.ceil(share / float(params.batch_base)) + 1))
+        cand = np.argpartition(-flat, m - 1)[:m] if m < flat.size else np.arange(flat.size)
+        order = np.lexsort((rng.random(cand.size), -flat[cand]))
+        cand = cand[order]
+        b = batch_of[cand]
+        before = np.concatenate([[0.0], np.cumsum(b)[:-1]])
+        take = before < share
+        cand, b, before = cand[take], b[take], before[take]
+        b = np.minimum(b, share - before)
+        grids = {}
+        lv = level_of[cand]
+        for k in np.unique(lv):
+            sel = lv == k
+            local = cand[sel] - offsets[k]
+            g = np.zeros(shapes[k])
+            np.add.at(g.ravel(), local, b[sel])
+            grids[int(k)] = g
+            ii, jj = np.divmod(local, shapes[k][1])
+            chosen["level"].append(np.full(ii.size, k, np.int64))
+            chosen["i"].append(ii.astype(np.int64))
+            chosen["j"].append(jj.astype(np.int64))
+            chosen["samples"].append(b[sel])
+        for k, g in grids.items():
+            planned += spread_batches(g, k, (h, w), bank)
+        remaining -= float(b.sum())
+    out = {k: (np.concatenate(v) if v else empty[k]) for k, v in chosen.items()}
+    # Exact budget despite float round-off.
+    tot = planned.sum()
+    if tot > 0:
+        planned *= budget / tot
+    return planned, out
+
+
+def _bayer(order: int = 3) -> np.ndarray:
+    """Ordered-dither threshold matrix (2^order square) with values (i + 0.5) / n."""
+    m = np.zeros((1, 1))
+    for _ in range(order):
+        m = np.block([[4 * m, 4 * m + 2], [4 * m + 3, 4 * m + 1]])
+    return (m + 0.5) / m.size
+
+
+def _round_counts(expected: np.ndarray, budget: int, offset=(0, 0)) -> np.ndarray:
+    """Integer counts from expected counts: ordered dithering (each pixel gets
+    ``floor`` or ``ceil`` of its expectation, the extra samples stratified over
+    8 x 8 blocks; ``offset`` shifts the pattern between iterations), then
+    corrected to sum to ``budget`` exactly."""
+    e = np.maximum(np.where(np.isfinite(expected), expected, 0.0), 0.0)
+    h, w = e.shape
+    b = _bayer()
+    oy, ox = int(offset[0]) % b.shape[0], int(offset[1]) % b.shape[1]
+    thr = np.tile(np.roll(b, (oy, ox), axis=(0, 1)),
+                  (h // b.shape[0] + 1, w // b.shape[1] + 1))[:h, :w]
+    base = np.floor(e)
+    counts = (base + ((e - base) > thr)).astype(np.int64)
+    diff = int(budget - counts.sum())
+    if diff != 0:
+        resid = (e - counts).ravel()
+        flat = counts.ravel()
+        if diff > 0:
+            idx = np.argpartition(-resid, diff - 1)[:diff] if diff < resid.size else np.arange(resid.size)
+            flat[idx] += 1
+            left = budget - int(flat.sum())
+            if left > 0:
+                flat += allocate(np.maximum(e.ravel(), 1e-12), left)
+        else:
+            need = -diff
+            while need > 0:
+                cand = np.nonzero(flat > 0)[0]
+                take = cand[np.argsort(resid[cand], kind="stable")[:need]]
+                flat[take] -= 1
+                resid[take] += 1.0
+                need -= take.size
+        counts = flat.reshape(e.shape)
+    return counts
+
+
+def sample_map(buf: Buffers, result: MethodResult | None, budget: int,
+               params: Params | None = None, state: dict | None = None) -> np.ndarray:
+    """New samples per pixel for the next render iteration (Sec. 4.1, Fig. 4).
+
+    Priorities (Eq. 8) choose scale coefficients, each gets a 64 x 2^k batch
+    spread over its support by the scale-function profile (Fig. 5), priorities
+    are updated ``rounds`` times, and the expected counts are dithered to
+    integers (module docstring).  ``result`` is not used: the priorities come
+    from the noisy pixel means (Eq. 7), as in the paper.  ``state`` keeps the
+    tie-breaking generator (seeded from ``params.seed``), the iteration count
+    (it shifts the dither pattern) and, for diagnostics, ``state["chosen"]``
+    (the popped coefficients of the last call, see ``plan_samples``).
+
+    Returns
+    -------
+    (H, W) int64 >= 0 summing exactly to ``budget``.
+    """
+    params = params or Params()
+    state = {} if state is None else state
+    budget = int(max(budget, 0))
+    expected, chosen = plan_samples(buf, budget, params, state)
+    state["chosen"] = chosen
+    state["iteration"] = int(state.get("iteration", 0)) + 1
+    if budget == 0:
+        return np.zeros(buf.shape, np.int64)
+    it = state["iteration"]
+    return _round_counts(expected, budget, offset=(3 * it, 5 * it))

@@ -1,0 +1,298 @@
+"""Tests for core/wavelets.py: Appendix A filter banks, the non-standard DWT and
+squared-filter variance propagation (Overbeck et al. 2009, Eq. 9, 10, 15)."""
+import numpy as np
+import pytest
+import pywt
+from hypothesis import given, settings, strategies as st
+
+from core import wavelets as wv
+
+BANKS = ["cdf97", "legall53", "haar"]
+# PyWavelets counterpart: (name, mode, detail sign, index offset of our first
+# coefficient in PyWavelets' redundant output, for lengths >= 8)
+PYWT = {
+    "cdf97": ("bior4.4", "reflect", -1.0, 2),
+    "legall53": ("bior2.2", "reflect", 1.0, 1),
+    "haar": ("haar", "symmetric", 1.0, 0),
+}
+SHAPES = [(1, 1), (1, 9), (9, 1), (2, 2), (3, 5), (5, 3), (7, 7), (13, 17), (31, 37), (32, 32)]
+
+
+# ----------------------------------------------------------------- filters
+def test_cdf97_matches_appendix_a_digits():
+    b = wv.BANKS["cdf97"]
+    s2 = np.sqrt(2.0)
+    np.testing.assert_allclose(b.lo_a / s2, [0.602949, 0.266864, -0.078223, -0.016864, 0.026749],
+                               atol=1e-6)
+    np.testing.assert_allclose(b.hi_a * s2, [1.115087, -0.591272, -0.057544, 0.091272], atol=1e-6)
+    np.testing.assert_allclose(b.lo_s * s2, [1.115087, 0.591272, -0.057544, -0.091272], atol=1e-6)
+    np.testing.assert_allclose(b.hi_s / s2, [0.602949, -0.266864, -0.078223, 0.016864, 0.026749],
+                               atol=1e-6)
+
+
+def test_legall53_matches_appendix_a():
+    b = wv.BANKS["legall53"]
+    s2 = np.sqrt(2.0)
+    np.testing.assert_allclose(b.lo_a, s2 / 8 * np.array([6, 2, -1]))
+    np.testing.assert_allclose(b.hi_a, 1 / s2 / 2 * np.array([-2, 1]))
+    np.testing.assert_allclose(b.lo_s, 1 / s2 / 2 * np.array([2, 1]))
+    np.testing.assert_allclose(b.hi_s, s2 / 8 * np.array([-6, 2, 1]))
+
+
+@pytest.mark.parametrize("name", BANKS)
+def test_filters_equal_pywavelets_up_to_sign(name):
+    pw, _, sign, _ = PYWT[name]
+    w = pywt.Wavelet(pw)
+    b = wv.BANKS[name]
+    trim = lambda f: np.trim_zeros(np.asarray(f, float))
+    np.testing.assert_allclose(np.sort(b.full("lo_a")[1]), np.sort(trim(w.dec_lo)), atol=1e-11)
+    np.testing.assert_allclose(np.sort(sign * b.full("hi_a")[1]), np.sort(trim(w.dec_hi)),
+                               atol=1e-11)
+
+
+@pytest.mark.parametrize("name", BANKS)
+def test_lowpass_sums_to_sqrt2_and_highpass_kills_constants(name):
+    b = wv.BANKS[name]
+    for f in ("lo_a", "lo_s"):
+        assert np.isclose(b.full(f)[1].sum(), np.sqrt(2.0))
+    for f in ("hi_a", "hi_s"):
+        assert abs(b.full(f)[1].sum()) < 1e-12
+
+
+def test_cdf97_highpass_has_four_vanishing_moments():
+    _, g = wv.BANKS["cdf97"].full("hi_a")
+    m = np.arange(len(g)) - len(g) // 2
+    for p in range(4):
+        assert abs(np.sum(g * m ** p)) < 1e-9
+    assert abs(np.sum(g * m ** 4)) > 1e-3
+
+
+# ------------------------------------------------------- perfect reconstruction
+@pytest.mark.parametrize("name", BANKS)
+@pytest.mark.parametrize("shape", SHAPES)
+def test_perfect_reconstruction_any_size(name, shape):
+    x = np.random.default_rng(1).normal(size=shape + (2,))
+    pyr = wv.dwt2(x, name)
+    assert pyr.levels == wv.max_levels(shape)
+    np.testing.assert_allclose(wv.idwt2(pyr, name), x, atol=1e-12)
+
+
+@settings(max_examples=25, deadline=None)
+@given(h=st.integers(1, 40), w=st.integers(1, 40), levels=st.integers(0, 8),
+       name=st.sampled_from(BANKS))
+def test_perfect_reconstruction_property(h, w, levels, name):
+    x = np.random.default_rng(h * 41 + w).normal(size=(h, w))
+    pyr = wv.dwt2(x, name, levels)
+    assert pyr.levels == min(levels, wv.max_levels((h, w)))
+    np.testing.assert_allclose(wv.idwt2(pyr, name), x, atol=1e-12)
+
+
+@pytest.mark.parametrize("name", BANKS)
+def test_subband_shapes_are_non_expansive(name):
+    pyr = wv.dwt2(np.zeros((13, 6)), name)
+    total = pyr.approx.size + sum(b.size for d in pyr.details for b in d)
+    assert total == 13 * 6
+    w0, w1, w2 = pyr.details[0]
+    assert w0.shape == (7, 3) and w1.shape == (6, 3) and w2.shape == (6, 3)
+    assert [s for s in wv.level_shapes((13, 6), 2)] == [(13, 6), (7, 3), (4, 2)]
+
+
+def test_axis_of_length_one_is_not_transformed():
+    x = np.random.default_rng(0).normal(size=(1, 16))
+    pyr = wv.dwt2(x, "cdf97", 1)
+    w0, w1, w2 = pyr.details[0]
+    assert w1.size == 0 and w2.size == 0
+    s1, d1 = pywt.dwt(x[0], "bior4.4", mode="reflect")
+    np.testing.assert_allclose(pyr.approx[0], s1[2:2 + 8], atol=1e-12)
+    np.testing.assert_allclose(w0[0], -d1[2:2 + 8], atol=1e-12)
+
+
+def test_constant_image_has_no_wavelets_and_scaled_approx():
+    pyr = wv.dwt2(np.full((12, 20), 3.0), "cdf97", 2)
+    for det in pyr.details:
+        for b in det:
+            assert np.abs(b).max() < 1e-12
+    np.testing.assert_allclose(pyr.approx, 3.0 * 2.0 ** 2)
+
+
+def test_linearity():
+    rng = np.random.default_rng(2)
+    a, b = rng.normal(size=(2, 11, 14))
+    pa, pb, pab = (wv.dwt2(v, "legall53") for v in (a, b, 2 * a - 3 * b))
+    np.testing.assert_allclose(pab.approx, 2 * pa.approx - 3 * pb.approx, atol=1e-12)
+    for da, db, dab in zip(pa.details, pb.details, pab.details):
+        for x, y, z in zip(da, db, dab):
+            np.testing.assert_allclose(z, 2 * x - 3 * y, atol=1e-12)
+
+
+# ---------------------------------------------------------- PyWavelets agreement
+@pytest.mark.parametrize("name", BANKS)
+@pytest.mark.parametrize("shape", [(16, 16), (17, 23), (24, 9 + 8)])
+def test_one_level_matches_pywavelets(name, shape):
+    pw, mode, sign, off = PYWT[name]
+    x = np.random.default_rng(3).normal(size=shape)
+    pyr = wv.dwt2(x, name, 1)
+    ca, (ch, cv, cd) = pywt.dwt2(x, pw, mode=mode)
+    cut = lambda a, ref: a[off:off + ref.shape[0], off:off + ref.shape[1]]
+    w0, w1, w2 = pyr.details[0]
+    np.testing.assert_allclose(pyr.approx, cut(ca, pyr.approx), atol=1e-10)
+    np.testing.assert_allclose(w0, sign * cut(cv, w0), atol=1e-10)   # low y, high x
+    np.testing.assert_allclose(w1, sign * cut(ch, w1), atol=1e-10)   # high y, low x
+    np.testing.assert_allclose(w2, cut(cd, w2), atol=1e-10)          # two high-passes
+
+
+@pytest.mark.parametrize("name", BANKS)
+def test_every_level_matches_pywavelets_applied_to_previous_scale(name):
+    pw, mode, sign, off = PYWT[name]
+    x = np.random.default_rng(4).normal(size=(64, 48))
+    pyr = wv.dwt2(x, name, 3)
+    scales = wv.scale_coefficients(x, name, 3)
+    for k in range(3):
+        ca, (ch, cv, cd) = pywt.dwt2(scales[k], pw, mode=mode)
+        w0, w1, w2 = pyr.details[k]
+        cut = lambda a, ref: a[off:off + ref.shape[0], off:off + ref.shape[1]]
+        np.testing.assert_allclose(scales[k + 1], cut(ca, scales[k + 1]), atol=1e-10)
+        np.testing.assert_allclose(w2, cut(cd, w2), atol=1e-10)
+        np.testing.assert_allclose(w0, sign * cut(cv, w0), atol=1e-10)
+    np.testing.assert_allclose(pyr.approx, scales[3], atol=1e-12)
+
+
+def test_haar_multilevel_equals_pywavelets_wavedec2():
+    x = np.random.default_rng(5).normal(size=(32, 32))
+    pyr = wv.dwt2(x, "haar")
+    ref = pywt.wavedec2(x, "haar", mode="symmetric", level=5)
+    np.testing.assert_allclose(pyr.approx, ref[0], atol=1e-12)
+    for k in range(1, 6):
+        ch, cv, cd = ref[6 - k]
+        w0, w1, w2 = pyr.details[k - 1]
+        np.testing.assert_allclose(w0, cv, atol=1e-12)
+        np.testing.assert_allclose(w1, ch, atol=1e-12)
+        np.testing.assert_allclose(w2, cd, atol=1e-12)
+
+
+# --------------------------------------------------------------- scale function
+@pytest.mark.parametrize("name", BANKS)
+@pytest.mark.parametrize("level", [1, 2, 3])
+def test_scale_function_is_the_response_to_an_impulse(name, level):
+    start, phi = wv.scale_function(name, level)
+    n = 2 ** level * 8 + len(phi) * 2
+    i = 4  # a coefficient far from both ends
+    centre = 2 ** level * i
+    # S_k[i] = sum_u phi[u] x[2^k i + start + u]: probe each pixel separately
+    resp = []
+    for u in range(len(phi)):
+        x = np.zeros((1, n))
+        x[0, centre + start + u] = 1.0
+        resp.append(wv.scale_coefficients(x, name, level)[level][0, i])
+    np.testing.assert_allclose(resp, phi, atol=1e-12)
+    assert np.isclose(phi.sum(), np.sqrt(2.0) ** level)
+
+
+def test_scale_function_2d_is_separable():
+    start, phi = wv.scale_function("legall53", 2)
+    x = np.zeros((40, 40))
+    x[16 + start + 1, 16 + start + 3] = 1.0
+    s2 = wv.scale_coefficients(x, "legall53", 2)[2]
+    # 1 x 1D contributions along each axis (level 2 coefficient (4, 4) sits at pixel 16)
+    assert np.isclose(s2[4, 4], phi[1] * phi[3])
+
+
+# ------------------------------------------------------------ variance propagation
+def _empirical(name, var, levels, reps=3000, seed=0):
+    rng = np.random.default_rng(seed)
+    x = rng.standard_normal(var.shape + (reps,)) * np.sqrt(var)[..., None]
+    return wv.dwt2(x, name, levels)
+
+
+def test_haar_variance_propagation_is_exact_at_every_level():
+    h = w = 16
+    var = (0.5 + np.add.outer(np.arange(h), np.arange(w)) / 20.0) ** 2
+    emp = _empirical("haar", var, 3)
+    pred = wv.dwt2_variance(var, "haar", 3)
+    for k in range(3):
+        for a in range(3):
+            r = emp.details[k][a].var(axis=-1) / pred.details[k][a]
+            assert 0.85 < r.min() and r.max() < 1.15, (k, a)
+    r = emp.approx.var(axis=-1) / pred.approx
+    assert 0.85 < r.min() and r.max() < 1.15
+
+
+@pytest.mark.parametrize("name", ["cdf97", "legall53"])
+def test_level_one_variance_is_exact_in_the_interior(name):
+    h, w = 20, 24
+    rng = np.random.default_rng(7)
+    var = rng.uniform(0.2, 3.0, size=(h, w))
+    emp = _empirical(name, var, 1, reps=4000)
+    pred = wv.dwt2_variance(var, name, 1)
+    inner = (slice(3, -3), slice(3, -3))
+    for a in range(3):
+        r = emp.details[0][a].var(axis=-1)[inner] / pred.details[0][a][inner]
+        assert abs(r.mean() - 1) < 0.02 and 0.85 < r.min() and r.max() < 1.15
+
+
+def test_deeper_cdf97_variance_has_the_documented_small_bias():
+    """Squared-filter DWT ignores covariances of overlapping level-(k-1)
+    coefficients (the paper's accepted bias): within 25% on average."""
+    var = np.full((48, 48), 2.0)
+    emp = _empirical("cdf97", var, 3, reps=1500)
+    pred = wv.dwt2_variance(var, "cdf97", 3)
+    for k in (1, 2):
+        for a in range(3):
+            e = emp.details[k][a].var(axis=-1)[2:-2, 2:-2]
+            p = pred.details[k][a][2:-2, 2:-2]
+            assert 0.8 < (e / p).mean() < 1.25
+
+
+@pytest.mark.parametrize("name", BANKS)
+def test_renormalised_sampler_variance_scales_by_1_05_per_filter(name):
+    var = np.random.default_rng(8).uniform(0.1, 2.0, size=(16, 16))
+    nat = wv.scale_variance(var, name, 3, lo_sum=None)
+    ren = wv.scale_variance(var, name, 3, lo_sum=1.05)
+    a = float(np.sum(wv.squared_bank(name).full("lo_a")[1]))
+    for k in range(4):
+        np.testing.assert_allclose(ren[k], nat[k] * (1.05 / a) ** (2 * k), rtol=1e-12)
+    # constant variance: each 1D squared filter multiplies by its sum
+    const = wv.scale_variance(np.ones((16, 16)), name, 3, lo_sum=1.05)
+    for k in range(4):
+        np.testing.assert_allclose(const[k], 1.05 ** (2 * k), rtol=1e-12)
+
+
+def test_reconstruction_filters_renormalised_to_inverse_sqrt2():
+    sq = wv.squared_bank("cdf97", 2 ** -0.5, 2 ** -0.5)
+    for f in ("lo_a", "hi_a", "lo_s", "hi_s"):
+        assert np.isclose(sq.full(f)[1].sum(), 2 ** -0.5)
+    pv = wv.dwt2_variance(np.ones((32, 32)), "cdf97", 3, 2 ** -0.5, 2 ** -0.5)
+    for k in range(3):
+        for b in pv.details[k]:
+            np.testing.assert_allclose(b, 2.0 ** -(k + 1), rtol=1e-12)
+
+
+def test_squared_synthesis_propagates_independent_coefficient_variances():
+    """Synthesis of independent coefficients: Haar is exact at every pixel."""
+    rng = np.random.default_rng(9)
+    tmpl = wv.dwt2(np.zeros((16, 16)), "haar", 2)
+    varp = wv.Pyramid(rng.uniform(0.5, 2, tmpl.approx.shape),
+                      [tuple(rng.uniform(0.5, 2, b.shape) for b in d) for d in tmpl.details])
+    reps = 4000
+    draw = lambda v: rng.standard_normal(v.shape + (reps,)) * np.sqrt(v)[..., None]
+    coefs = wv.Pyramid(draw(varp.approx), [tuple(draw(b) for b in d) for d in varp.details])
+    emp = wv.idwt2(coefs, "haar").var(axis=-1)
+    pred = wv.idwt2_variance(varp, "haar")
+    r = emp / pred
+    assert abs(r.mean() - 1) < 0.02 and 0.85 < r.min() and r.max() < 1.15
+
+
+@settings(max_examples=20, deadline=None)
+@given(h=st.integers(1, 20), w=st.integers(1, 20), name=st.sampled_from(BANKS))
+def test_variance_propagation_is_non_negative_and_finite(h, w, name):
+    var = np.random.default_rng(h + 100 * w).uniform(0, 1e30, size=(h, w))
+    pv = wv.dwt2_variance(var, name, None, 2 ** -0.5, 2 ** -0.5)
+    for arr in [pv.approx] + [b for d in pv.details for b in d]:
+        assert np.isfinite(arr).all() and (arr >= 0).all()
+    back = wv.idwt2_variance(pv, name)
+    assert back.shape == (h, w) and np.isfinite(back).all() and (back >= 0).all()
+
+
+def test_unknown_bank_is_rejected():
+    with pytest.raises(ValueError):
+        wv.get_bank("db4")
