@@ -1,0 +1,241 @@
+"""Linear-algebra kernels of LP (Moon, Iglesias-Guitian, Yoon, Mitchell 2015).
+
+The recursive least squares of Eq. 3 grows a prediction window one pixel at a
+time.  Only the models at the ring boundaries ``k(r) = (2r+1)^2`` are ever used
+(Eq. 4-5 test the model of ``k(r-1)`` on ring ``r``; the optimal model is one of
+``beta(k(r))``), and RLS started from ``beta(0) = beta0``, ``P(0) = delta^-1 I``
+is *exactly* the regularised normal equation
+
+    beta(k) = (delta I + X_k^T X_k)^-1 (delta beta0 + X_k^T Y_k)
+
+(Ljung & Soederstroem 1987; Woodbury identity), so here each ring adds its
+``X^T X`` and ``X^T Y`` to running sums, and one batched SPD solve over all
+rings and centres gives every ``beta(k(r))`` at once.  ``tests/core/test_lp.py`` checks this
+against the pixel-by-pixel recursion of Eq. 3 and against batch least squares.
+
+Everything is vectorised over the leading "centre" axis N; the only Python
+loops run over rings and over the (at most 10) matrix dimensions.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+
+def ring_layout(radius: int):
+    """Offsets of a ``(2R+1) x (2R+1)`` window ordered ring by ring.
+
+    Parameters
+    ----------
+    radius : int
+        R, the half width of the filtering window (paper: 9, a 19x19 window).
+
+    Returns
+    -------
+    dy, dx : (K,) int64
+        Row / column offsets, K = (2R+1)^2; entry 0 is the centre (0, 0).
+    ring : (K,) int64
+        Chebyshev distance max(|dy|, |dx|) of each offset (the ring index r).
+    starts : (R+2,) int64
+        Ring r occupies ``[starts[r], starts[r+1])`` = ``[(2r-1)^2, (2r+1)^2)``
+        (ring 0 is the single centre pixel), so ``starts[r+1] = k(r)``.
+    """
+    radius = int(radius)
+    side = np.arange(-radius, radius + 1)
+    dy, dx = np.meshgrid(side, side, indexing="ij")
+    dy, dx = dy.ravel(), dx.ravel()
+    ring = np.maximum(np.abs(dy), np.abs(dx))
+    order = np.lexsort((dx, dy, ring))
+    starts = np.array([0] + [(2 * q + 1) ** 2 for q in range(radius + 1)], np.int64)
+    return dy[order].astype(np.int64), dx[order].astype(np.int64), ring[order].astype(np.int64), starts
+
+
+def spd_solve(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Solve ``a x = b`` for a stack of symmetric positive definite matrices.
+
+    A Cholesky factorisation vectorised over the stack (loops run over the
+    matrix dimension only, p <= 10 here), much cheaper than LAPACK's per-matrix
+    call overhead for millions of 10x10 systems.  Pivots are clamped to
+    ``1e-300`` so a (numerically) semi-definite matrix gives a finite answer.
+
+    Parameters
+    ----------
+    a : (N, p, p) float64, SPD (here ``delta I + X^T X`` with delta > 0).
+    b : (N, p, C) float64.
+
+    Returns
+    -------
+    x : (N, p, C) float64.
+    """
+    n, p, _ = a.shape
+    # stack axis last: every elementary step is one vector operation over all systems
+    at = np.ascontiguousarray(np.moveaxis(a, 0, -1))
+    bt = np.ascontiguousarray(np.moveaxis(b, 0, -1))
+    low = np.zeros_like(at)
+    for j in range(p):
+        if j:
+            s = at[j, j] - (low[j, :j] * low[j, :j]).sum(0)
+        else:
+            s = at[j, j]
+        d = np.sqrt(np.maximum(s, 1e-300))
+        inv = 1.0 / d
+        low[j, j] = d
+        if j + 1 < p:
+            off = at[j + 1:, j]
+            if j:
+                off = off - (low[j + 1:, :j] * low[j, :j][None]).sum(1)
+            low[j + 1:, j] = off * inv
+    y = np.empty_like(bt)
+    for i in range(p):
+        acc = bt[i]
+        if i:
+            acc = acc - (low[i, :i, None] * y[:i]).sum(0)
+        y[i] = acc / low[i, i]
+    x = np.empty_like(bt)
+    for i in range(p - 1, -1, -1):
+        acc = y[i]
+        if i + 1 < p:
+            acc = acc - (low[i + 1:, i, None] * x[i + 1:]).sum(0)
+        x[i] = acc / low[i, i]
+    return np.moveaxis(x, -1, 0)
+
+
+@dataclass
+class RingFits:
+    """Per-centre RLS models and accumulated prediction errors for every ring.
+
+    beta : (R+1, N, p, C) float64
+        ``beta(k(r))``, the least-squares model of the window k(r) (Eq. 3).
+    xi_acc : (R+1, N, C) float64
+        Accumulated prediction error ``xi_acc(k(r))`` (Eq. 4); entry 0 is the
+        caller's ``xi0``, entry 1 the leave-one-out sum of Eq. 7, entries r >= 2
+        add Eq. 5's ring errors.
+    count : (R+1, N) float64
+        Number of (weight-1) pixels inside k(r): the normaliser of Eq. 4.
+    gram : (R+1, N, p, p) float64 or None
+        ``delta I + X^T X`` of k(r) (the inverse of RLS's ``P(k(r))``), kept
+        only when asked (for a temporal extension that continues the RLS).
+    """
+
+    beta: np.ndarray
+    xi_acc: np.ndarray
+    count: np.ndarray
+    gram: np.ndarray | None = None
+
+
+def ring_fits(z: np.ndarray, y: np.ndarray, w: np.ndarray, s: np.ndarray,
+              beta0: np.ndarray, xi0: np.ndarray, radius: int, delta: float = 1e-3,
+              keep_gram: bool = False, work: dict | None = None) -> RingFits:
+    """Recursive least squares (Eq. 3) and recursive prediction error (Eq. 4, 5, 7)
+    of Moon et al. 2015, ring by ring, for N centres at once.
+
+    Parameters
+    ----------
+    z : (N, p, K) float64
+        Design rows ``z_i = (1, (x_i - x_c)^T)`` (as columns) of the
+        K = (2R+1)^2 window pixels in ``ring_layout`` order (pixel 0 is the
+        centre).  Must be finite.
+    y : (N, C, K) float64
+        Observations (pixel means), one row per colour channel.  Finite.
+    w : (N, K) float64 in {0, 1}
+        1 for pixels that enter the fit and the error sums; 0 for missing ones
+        (outside the image, no samples, non-finite input).
+    s : (N, C, K) float64
+        Amount subtracted from every squared test residual of Eq. 5 and Eq. 7
+        (the test pixel's variance of the mean, see ``lp.Params``); zeros give
+        the literal equations.  Finite.
+    beta0 : (N, C) float64
+        Intercept of the initial model ``beta(0) = (y_1, 0, ..., 0)`` (Sec. 7),
+        y_1 the centre pixel.
+    xi0 : (N, C) float64
+        ``xi_acc(k(0))``: the variance of the mean at the centre (Sec. 7);
+        may be +inf.
+    radius : int
+        R; rings r = 0 .. R.
+    delta : float
+        Sec. 7's delta: ``P(0) = delta^-1 I`` (paper: 0.001).
+    keep_gram : bool
+        Also return ``delta I + X^T X`` per ring.
+    work : dict or None
+        Optional scratch: ``m`` and ``mw`` (N, p + C, K), ``mom`` and ``cum``
+        (R+1, N, p + C, p + C); ``m[:, :p]`` may already hold ``z``.
+
+    Returns
+    -------
+    RingFits
+        ``beta(k(r))`` solves ``(delta I + X^T X) beta = delta beta(0) + X^T Y``
+        over the pixels of k(r), which is what the recursion of Eq. 3 reaches
+        after the last pixel of ring r; ``xi_acc(k(1))`` is Eq. 7,
+        ``sum_i w_i [((beta(k(1))^T z_i - y_i) / (1 - z_i^T P(k(1)) z_i))^2 - s_i]``
+        over the 9 pixels of k(1); for r >= 2
+        ``xi_acc(k(r)) = xi_acc(k(r-1)) + sum_{i in ring r} w_i [(beta(k(r-1))^T z_i - y_i)^2 - s_i]``
+        (Eq. 4-5).
+
+    Notes
+    -----
+    Observations are centred on ``beta0`` (``y' = y - y_c``: the prior becomes
+    0 and ``beta(0)`` reproduces ``y_c`` exactly).  One matrix product per ring
+    gives the ring's moments ``[z y'] W [z y']^T``; the normal equations of
+    all rings are their cumulative sums and are solved in one batch.  Eq. 5's
+    ring sum is evaluated from the ring moments as
+    ``beta^T A beta - 2 beta^T b + y'^T y'`` (clamped at 0 before the variance
+    is subtracted, against rounding), so no second pass over the pixels is
+    needed.
+    """
+    n, p, k = z.shape
+    c = y.shape[1]
+    radius = int(radius)
+    starts = ring_layout(radius)[3]
+    q = p + c
+    work = work or {}
+    m = work.get("m")
+    m = np.empty((n, q, k)) if m is None else m
+    mw = work.get("mw")
+    mw = np.empty((n, q, k)) if mw is None else mw
+    mom = work.get("mom")
+    mom = np.empty((radius + 1, n, q, q)) if mom is None else mom
+    cum = work.get("cum")
+    cum = np.empty((radius + 1, n, q, q)) if cum is None else cum
+    if not np.shares_memory(m, z):
+        m[:, :p] = z
+    np.subtract(y, beta0[:, :, None], out=m[:, p:])
+    np.multiply(m, w[:, None, :], out=mw)
+    # moments [z y'] W [z y']^T of every ring: one batched matrix product per ring
+    for r in range(radius + 1):
+        lo, hi = starts[r], starts[r + 1]
+        np.matmul(mw[:, :, lo:hi], np.swapaxes(m[:, :, lo:hi], 1, 2), out=mom[r])
+    cum[0] = mom[0]
+    for r in range(1, radius + 1):
+        np.add(cum[r - 1], mom[r], out=cum[r])
+    a = cum[:, :, :p, :p] + delta * np.eye(p)
+    beta = spd_solve(a.reshape(-1, p, p), cum[:, :, :p, p:].reshape(-1, p, c))
+    beta = beta.reshape(radius + 1, n, p, c)
+    count = cum[:, :, 0, 0].copy()
+    xi_acc = np.empty((radius + 1, n, c))
+    xi_acc[0] = xi0
+    if radius >= 1:
+        # Eq. 7: closed-form leave-one-out over the 9 pixels of k(1) (Allen 1974)
+        z9 = m[:, :p, :9]
+        pz = spd_solve(a[1], z9)                                        # P(k(1)) z_i
+        h = (z9 * pz).sum(axis=1)                                       # (N, 9)
+        res = np.matmul(np.swapaxes(beta[1], 1, 2), z9) - m[:, p:, :9]
+        res /= np.maximum(1.0 - h, 1e-12)[:, None, :]
+        res *= res
+        res -= s[:, :, :9]
+        res *= w[:, None, :9]
+        xi_acc[1] = res.sum(axis=2)
+    if radius >= 2:
+        # Eq. 5: the model of k(r-1) (training set) tested on ring r (test set)
+        bt = beta[1:-1]                                                 # beta(k(r-1))
+        quad = (np.matmul(mom[2:, :, :p, :p], bt) * bt).sum(axis=2)
+        quad -= 2.0 * (mom[2:, :, :p, p:] * bt).sum(axis=2)
+        quad += np.diagonal(mom[2:, :, p:, p:], axis1=2, axis2=3)
+        np.maximum(quad, 0.0, out=quad)
+        # sum_{i in ring} w_i s_i
+        ws_ring = np.add.reduceat(s[:, :, starts[2]:] * w[:, None, starts[2]:],
+                                  starts[2:-1] - starts[2], axis=2)     # (N, C, R-1)
+        quad -= np.moveaxis(ws_ring, 2, 0)
+        xi_acc[2:] = xi_acc[1] + np.cumsum(quad, axis=0)
+    beta[:, :, 0, :] += beta0
+    return RingFits(beta, xi_acc, count, a if keep_gram else None)

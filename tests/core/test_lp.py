@@ -1,0 +1,581 @@
+"""Tests of core/lp.py and core/lp_solve.py (Moon, Iglesias-Guitian, Yoon, Mitchell 2015)."""
+from dataclasses import fields
+
+import numpy as np
+import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+
+from core import lp
+from core.buffers import Buffers
+from core.lp_solve import ring_fits, ring_layout, spd_solve
+from core.method import allocate, params_from_dict
+
+
+# ----------------------------------------------------------------------------- helpers
+def scene_features(h, w, seed=0, texture=True):
+    """Smooth depth, a hemisphere-ish normal field and (optionally) a random texture."""
+    rng = np.random.default_rng(seed)
+    yy, xx = np.mgrid[0:h, 0:w].astype(np.float64)
+    depth = (3.0 + 0.02 * xx + 0.01 * yy)[..., None]
+    nrm = np.stack([0.3 * np.sin(0.1 * xx), 0.3 * np.cos(0.13 * yy), np.ones((h, w))], -1)
+    nrm /= np.linalg.norm(nrm, axis=-1, keepdims=True)
+    if texture:
+        alb = 0.2 + 0.6 * rng.random((h, w, 3))
+    else:
+        alb = np.full((h, w, 3), 0.5)
+    return {"depth": depth, "normal": nrm, "albedo": alb}
+
+
+def make_buffers(truth, feats, sigma=0.2, subsets=4, spp=4, seed=1, sigma_map=None):
+    """Buffers from ``subsets`` noisy realisations (each a mean of ``spp``
+    samples) of a known truth; features noise-free."""
+    rng = np.random.default_rng(seed)
+    scale = sigma if sigma_map is None else sigma_map[..., None]
+    colors = [truth + rng.normal(0.0, 1.0, truth.shape) * scale / np.sqrt(spp) for _ in range(subsets)]
+    return Buffers.from_subsets(colors, [spp] * subsets, [feats] * subsets)
+
+
+def mse(a, b):
+    return float(((a - b) ** 2).mean())
+
+
+def rls_recursion(z, y, w, beta0, delta):
+    """Eq. 3 of Moon et al. 2015, pixel by pixel: z (K, p), y (K, C).
+    Returns the model after each pixel (pixels with w = 0 are skipped)."""
+    k, p = z.shape
+    pmat = np.eye(p) / delta
+    beta = np.zeros((p, y.shape[1]))
+    beta[0] = beta0
+    out = []
+    for i in range(k):
+        if w[i] > 0:
+            zi = z[i]
+            pz = pmat @ zi
+            gain = pz / (1.0 + zi @ pz)
+            pmat = pmat - np.outer(gain, zi @ pmat)
+            beta = beta + np.outer(gain, y[i] - beta.T @ zi)
+        out.append(beta.copy())
+    return out
+
+
+def batch_ls(z, y, beta0, delta):
+    """argmin delta ||beta - beta(0)||^2 + ||z beta - y||^2 by lstsq of the
+    augmented system (the cost RLS minimises)."""
+    p = z.shape[1]
+    prior = np.zeros((p, y.shape[1]))
+    prior[0] = beta0
+    a = np.vstack([np.sqrt(delta) * np.eye(p), z])
+    b = np.vstack([np.sqrt(delta) * prior, y])
+    return np.linalg.lstsq(a, b, rcond=None)[0]
+
+
+def random_rings(n, radius, p, c=3, seed=0, holes=True):
+    rng = np.random.default_rng(seed)
+    k = (2 * radius + 1) ** 2
+    z = rng.normal(size=(n, p, k))
+    z[:, 0] = 1.0
+    z[:, 1:, 0] = 0.0                                   # the centre: x_c - x_c = 0
+    y = rng.normal(size=(n, c, k)) + 3.0
+    w = np.ones((n, k))
+    if holes:
+        w[rng.random((n, k)) < 0.15] = 0.0
+        w[:, 0] = 1.0
+    s = 0.01 * rng.random((n, c, k))
+    beta0 = y[:, :, 0].copy()
+    xi0 = 0.05 * np.ones((n, c))
+    return z, y, w, s, beta0, xi0
+
+
+# ------------------------------------------------------------------ linear algebra core
+def test_ring_layout_orders_pixels_ring_by_ring():
+    dy, dx, ring, starts = ring_layout(4)
+    assert len(dy) == 81 and (dy[0], dx[0]) == (0, 0)
+    assert np.array_equal(ring, np.maximum(np.abs(dy), np.abs(dx)))
+    assert np.all(np.diff(ring) >= 0)
+    for r in range(1, 5):
+        assert starts[r + 1] - starts[r] == 8 * r
+        assert np.all(ring[starts[r]:starts[r + 1]] == r)
+    assert len({(a, b) for a, b in zip(dy, dx)}) == 81
+
+
+def test_spd_solve_matches_lapack():
+    rng = np.random.default_rng(3)
+    x = rng.normal(size=(50, 30, 6))
+    a = np.swapaxes(x, 1, 2) @ x + 1e-3 * np.eye(6)
+    b = rng.normal(size=(50, 6, 4))
+    assert np.allclose(spd_solve(a, b), np.linalg.solve(a, b), rtol=1e-10, atol=1e-12)
+
+
+def test_rls_equals_recursion_and_batch_least_squares():
+    """Cumulative normal equations per ring == Eq. 3 recursion == batch LS, to 1e-6."""
+    radius, p, delta = 4, 5, 1e-3
+    z, y, w, s, beta0, xi0 = random_rings(6, radius, p)
+    fits = ring_fits(z, y, w, s, beta0, xi0, radius, delta)
+    starts = ring_layout(radius)[3]
+    for n in range(z.shape[0]):
+        zr, yr = z[n].T, y[n].T
+        steps = rls_recursion(zr, yr, w[n], beta0[n], delta)
+        for r in range(radius + 1):
+            end = starts[r + 1]
+            rec = steps[end - 1]
+            keep = w[n, :end] > 0
+            batch = batch_ls(zr[:end][keep], yr[:end][keep], beta0[n], delta)
+            got = fits.beta[r, n]
+            assert np.allclose(got, rec, rtol=1e-6, atol=1e-6), (n, r)
+            assert np.allclose(got, batch, rtol=1e-6, atol=1e-6), (n, r)
+        assert fits.count[radius, n] == w[n].sum()
+
+
+def test_rls_with_tiny_delta_is_ordinary_least_squares():
+    radius, p = 3, 4
+    z, y, w, s, beta0, xi0 = random_rings(3, radius, p, holes=False)
+    fits = ring_fits(z, y, w, s, beta0, xi0, radius, delta=1e-10)
+    for n in range(3):
+        ols = np.linalg.lstsq(z[n].T, y[n].T, rcond=None)[0]
+        assert np.allclose(fits.beta[radius, n], ols, rtol=1e-6, atol=1e-6)
+
+
+def test_first_model_reproduces_the_centre_pixel():
+    z, y, w, s, beta0, xi0 = random_rings(4, 2, 3)
+    fits = ring_fits(z, y, w, s, beta0, xi0, 2, 1e-3)
+    assert np.array_equal(fits.beta[0][:, 0, :], beta0)       # beta(1)^T z_c = y_c (Sec. 7)
+    assert np.all(fits.beta[0][:, 1:, :] == 0.0)
+
+
+def test_prediction_error_recursion_matches_explicit_computation():
+    """Eq. 7 (closed-form leave-one-out) and Eq. 4-5 (ring test errors) against
+    refitting explicitly, with and without the variance correction."""
+    radius, p, delta = 4, 4, 1e-3
+    z, y, w, s, beta0, xi0 = random_rings(5, radius, p, seed=7)
+    starts = ring_layout(radius)[3]
+    for corr in (s, np.zeros_like(s)):
+        fits = ring_fits(z, y, w, corr, beta0, xi0, radius, delta)
+        for n in range(z.shape[0]):
+            zr, yr, sr = z[n].T, y[n].T, corr[n].T
+            assert np.allclose(fits.xi_acc[0, n], xi0[n])
+            # Eq. 7: leave each of the 9 pixels of k(1) out, refit (with the prior), test it
+            loo = np.zeros(y.shape[1])
+            for i in range(9):
+                if w[n, i] == 0:
+                    continue
+                keep = (w[n, :9] > 0) & (np.arange(9) != i)
+                b = batch_ls(zr[:9][keep], yr[:9][keep], beta0[n], delta)
+                loo += (zr[i] @ b - yr[i]) ** 2 - sr[i]
+            assert np.allclose(fits.xi_acc[1, n], loo, rtol=1e-8, atol=1e-10)
+            # Eq. 4-5: model of k(r-1) tested on the 8r new pixels
+            acc = loo
+            for r in range(2, radius + 1):
+                lo, hi = starts[r], starts[r + 1]
+                keep = w[n, :lo] > 0
+                b = batch_ls(zr[:lo][keep], yr[:lo][keep], beta0[n], delta)
+                ring = w[n, lo:hi] > 0
+                acc = acc + (((zr[lo:hi] @ b - yr[lo:hi]) ** 2 - sr[lo:hi]) * ring[:, None]).sum(0)
+                assert np.allclose(fits.xi_acc[r, n], acc, rtol=1e-8, atol=1e-9), (n, r)
+
+
+# ------------------------------------------------------------------------- features
+def _window_features(h, w, feats, radius):
+    """Gather the (1, D, K) feature window around the image centre as lp does."""
+    dy, dx, _, _ = ring_layout(radius)
+    cy, cx = h // 2, w // 2
+    cols = [dy.astype(float), dx.astype(float)]
+    groups, start = [], 2
+    for name in ("depth", "normal", "albedo"):
+        f = feats[name][cy + dy, cx + dx]
+        cols.extend(f.T)
+        groups.append((start, start + f.shape[1]))
+        start += f.shape[1]
+    return np.array(cols)[None], groups
+
+
+def test_tsvd_drops_constant_features_and_keeps_informative_ones():
+    h = w = 21
+    radius = 9
+    flat = scene_features(h, w, texture=False)
+    flat["normal"] = np.broadcast_to([0.0, 0.0, 1.0], (h, w, 3)).copy()
+    flat["depth"] = np.full((h, w, 1), 4.0)
+    f, groups = _window_features(h, w, flat, radius)
+    valid = np.ones((1, f.shape[2]))
+    t, rank, sigma, _ = lp.feature_transform(f, valid, np.zeros((1, 3)), groups, radius)
+    assert rank[0] == 2                                   # only the screen plane
+    assert np.all(t[0][:, 2:] == 0.0)
+    textured = scene_features(h, w, texture=True)
+    textured["normal"], textured["depth"] = flat["normal"], flat["depth"]
+    f, groups = _window_features(h, w, textured, radius)
+    t, rank, sigma, tol = lp.feature_transform(f, valid, np.zeros((1, 3)), groups, radius)
+    assert rank[0] == 5                                   # + three albedo directions
+    assert np.all(sigma[0, :5] > tol[0]) and np.all(sigma[0, 5:] <= tol[0])
+    # the same texture declared very noisy is dropped (threshold 2 ||E||_2)
+    t, rank, _, _ = lp.feature_transform(f, valid, np.array([[0.0, 0.0, 1e3]]), groups, radius)
+    assert rank[0] == 2
+
+
+def test_box_sum_matches_explicit_window_sums():
+    rng = np.random.default_rng(0)
+    plane = rng.random((7, 9))
+    r = 2
+    padded = np.pad(plane, r)
+    got = lp._box_sum(padded, r)[r:-r, r:-r]
+    want = np.array([[padded[i:i + 2 * r + 1, j:j + 2 * r + 1].sum() for j in range(9)] for i in range(7)])
+    assert np.allclose(got, want)
+
+
+# ------------------------------------------------------------------ reconstruction
+def test_linear_truth_windows_grow_to_the_maximum_and_error_drops():
+    h, w = 48, 48
+    feats = scene_features(h, w, seed=2)
+    truth = 0.7 * feats["albedo"] + 0.05 * feats["depth"]           # linear in the features
+    buf = make_buffers(truth, feats, sigma=0.3, seed=3)
+    res = lp.reconstruct(buf)
+    fit = res.info["lp_fit"]
+    assert fit.radius.mean() > 0.75 * 9
+    assert mse(res.image, truth) < 0.05 * mse(buf.color.mean, truth)
+    assert 0.0 < res.info["center_fraction"] < 0.2
+    assert res.info["center_fraction"] == pytest.approx(len(fit.centers) / (h * w))
+
+
+def test_windows_shrink_at_an_edge_the_features_do_not_explain():
+    h, w = 40, 64
+    feats = scene_features(h, w, seed=4)
+    xx = np.arange(w)[None, :, None]
+    truth = (0.6 * feats["albedo"]) * np.where(xx < 32, 1.0, 0.15)  # a shadow edge at x = 32
+    buf = make_buffers(truth, feats, sigma=0.1, seed=5)
+    fit = lp.reconstruct(buf).info["lp_fit"]
+    near = fit.radius[:, 30:34].mean()
+    far = np.concatenate([fit.radius[:, :16], fit.radius[:, 48:]], axis=1).mean()
+    assert near < 0.6 * far
+    # centres are denser near the edge
+    cx = fit.centers[:, 1]
+    assert np.mean(np.abs(cx - 31.5) < 4) > 2 * 8 / w
+
+
+def test_step_in_a_feature_is_kept_sharp():
+    """A texture step that the albedo feature explains stays sharp although
+    windows stay large."""
+    h, w = 40, 40
+    feats = scene_features(h, w, texture=False)
+    xx = np.arange(w)[None, :]
+    feats["albedo"] = np.where((xx < 20)[..., None], 0.1, 0.9) * np.ones((h, w, 3))
+    truth = 0.8 * feats["albedo"]
+    buf = make_buffers(truth, feats, sigma=0.2, seed=6)
+    res = lp.reconstruct(buf)
+    edge = slice(17, 23)
+    assert mse(res.image[:, edge], truth[:, edge]) < 0.2 * mse(buf.color.mean[:, edge], truth[:, edge])
+    assert res.info["lp_fit"].radius.mean() > 4
+
+
+def test_zero_variance_input_is_returned_unchanged():
+    h, w = 23, 29
+    feats = scene_features(h, w, seed=8)
+    rng = np.random.default_rng(9)
+    img = rng.random((h, w, 3)) * 5 - 1                 # arbitrary, not linear, negatives
+    buf = Buffers.from_subsets([img] * 3, [4] * 3, [feats] * 3)
+    res = lp.reconstruct(buf)
+    assert np.array_equal(res.image, img)
+    assert np.all(res.error == 0.0)
+
+
+def test_estimated_error_correlates_with_true_error():
+    h, w = 48, 64
+    feats = scene_features(h, w, seed=10)
+    xx = np.arange(w)[None, :]
+    truth = 0.6 * feats["albedo"] * np.where((xx < 40)[..., None], 1.0, 0.3)
+    sigma = 0.05 + 0.6 * (np.arange(h)[:, None] / h) * np.ones((1, w))   # noise grows downwards
+    buf = make_buffers(truth, feats, seed=11, sigma_map=sigma)
+    res = lp.reconstruct(buf)
+    true_err = ((res.image - truth) ** 2).mean(axis=-1)
+    blocks = lambda a: a.reshape(h // 8, 8, w // 8, 8).mean(axis=(1, 3)).ravel()
+    est, true = blocks(res.error), blocks(true_err)
+    assert np.corrcoef(est, true)[0, 1] > 0.45
+    # errors span orders of magnitude: the pattern (log scale) matches closely
+    assert np.corrcoef(np.log(est), np.log(true))[0, 1] > 0.75
+
+
+def test_accumulation_matches_explicit_per_centre_predictions():
+    """Eq. 1 predictions of every centre over its window, averaged, and the
+    per-pixel error and Sec. 5.2 reduction, recomputed centre by centre."""
+    h, w = 17, 13
+    feats = scene_features(h, w, seed=12)
+    truth = 0.5 * feats["albedo"] + 0.2 * feats["normal"][..., 2:3]
+    buf = make_buffers(truth, feats, sigma=0.3, seed=13)
+    buf.n[3, 4] = 9.0                                    # uneven sample counts
+    params = lp.Params(radius=3)
+    color, var, fts, fvars = lp._inputs(buf)
+    fit = lp.fit(color, var, fts, fvars, buf.n, params, keep_models=True)
+    raw = np.concatenate([feats["depth"], feats["normal"], feats["albedo"]], axis=-1)
+    pred = np.zeros((h, w, 3))
+    err = np.zeros((h, w, 3))
+    dxi = np.zeros((h, w, 3))
+    cnt = np.zeros((h, w, 3))
+    m = fit.models
+    for i, (cy, cx) in enumerate(fit.centers):
+        for c in range(3):
+            r = fit.center_radius[i, c]
+            for yy in range(max(cy - r, 0), min(cy + r + 1, h)):
+                for xx in range(max(cx - r, 0), min(cx + r + 1, w)):
+                    x = np.concatenate([[yy - cy, xx - cx], raw[yy, xx] - raw[cy, cx]])
+                    zv = np.concatenate([[1.0], x @ m["transform"][i]])
+                    pred[yy, xx, c] += m["beta"][i, c] @ zv
+                    err[yy, xx, c] += fit.center_error[i, c]
+                    dxi[yy, xx, c] += fit.center_error[i, c] * buf.n[yy, xx] ** (-4.0 / (fit.center_rank[i] + 4))
+                    cnt[yy, xx, c] += 1
+    assert np.all(cnt > 0)
+    assert np.allclose(fit.image, pred / cnt, rtol=1e-9, atol=1e-12)
+    assert np.allclose(fit.error, np.maximum(err / cnt, 0).mean(-1), rtol=1e-9, atol=1e-15)
+    assert np.allclose(fit.delta_error, np.maximum(dxi / cnt, 0), rtol=1e-9, atol=1e-15)
+    # P is the RLS inverse covariance: symmetric positive definite
+    pm = m["P"]
+    assert np.allclose(pm, np.swapaxes(pm, -1, -2))
+    assert np.all(np.linalg.eigvalsh(pm[..., :1, :1]) > 0)
+
+
+def test_chunking_does_not_change_the_result():
+    h, w = 30, 37
+    feats = scene_features(h, w, seed=14)
+    truth = 0.6 * feats["albedo"] * (1 + 0.5 * np.sin(np.arange(w) / 3.0))[None, :, None]
+    buf = make_buffers(truth, feats, sigma=0.2, seed=15)
+    a = lp.reconstruct(buf, lp.Params(chunk=16))
+    b = lp.reconstruct(buf, lp.Params(chunk=4096))
+    assert np.allclose(a.image, b.image, rtol=1e-12, atol=1e-12)
+    assert np.allclose(a.error, b.error, rtol=1e-12, atol=1e-15)
+
+
+def test_literal_error_estimate_prefers_smaller_windows():
+    h, w = 40, 40
+    feats = scene_features(h, w, seed=16)
+    truth = 0.7 * feats["albedo"]
+    buf = make_buffers(truth, feats, sigma=0.3, seed=17)
+    corrected = lp.reconstruct(buf, lp.Params(variance_corrected=True))
+    literal = lp.reconstruct(buf, lp.Params(variance_corrected=False))
+    assert np.all(np.isfinite(literal.image)) and np.all(literal.error >= 0)
+    assert literal.info["lp_fit"].radius.mean() < corrected.info["lp_fit"].radius.mean()
+    assert literal.info["center_fraction"] > corrected.info["center_fraction"]
+    assert mse(literal.image, truth) < mse(buf.color.mean, truth)
+
+
+def test_single_subset_has_infinite_variance_and_still_filters():
+    h, w = 40, 40
+    feats = scene_features(h, w, seed=18)
+    truth = 0.7 * feats["albedo"]
+    buf = make_buffers(truth, feats, sigma=0.3, subsets=1, spp=4, seed=19)
+    assert np.all(np.isinf(buf.variance_of_mean()))
+    res = lp.reconstruct(buf)
+    assert np.all(np.isfinite(res.image)) and np.all(np.isfinite(res.error))
+    assert np.all(res.info["lp_fit"].center_radius > 0)   # xi(k(0)) = inf is never chosen
+    assert mse(res.image, truth) < 0.3 * mse(buf.color.mean, truth)
+
+
+def test_pixels_without_samples_are_predicted_from_their_neighbours():
+    h, w = 32, 32
+    feats = scene_features(h, w, seed=20)
+    truth = 0.7 * feats["albedo"] + 0.1
+    buf = make_buffers(truth, feats, sigma=0.2, seed=21)
+    holes = np.zeros((h, w), bool)
+    holes[10:13, 5:9] = True
+    holes[25, 25] = True
+    buf.n[holes] = 0
+    buf.k[holes] = 0
+    buf.color.mean[holes] = np.nan
+    res = lp.reconstruct(buf)
+    assert np.all(np.isfinite(res.image))
+    assert mse(res.image[holes], truth[holes]) < 0.01
+
+
+def test_firefly_stays_local_and_finite():
+    """A single 1e6 sample: output finite; it changes the models whose window
+    holds it (radius R) and, through coverage, at most one more R per pass."""
+    h, w = 64, 64
+    feats = scene_features(h, w, seed=22)
+    truth = 0.7 * feats["albedo"]
+    params = lp.Params(radius=3)
+    clean = make_buffers(truth, feats, sigma=0.2, seed=23)
+    rng = np.random.default_rng(23)
+    colors = [truth + rng.normal(0.0, 1.0, truth.shape) * 0.2 / 2 for _ in range(4)]
+    colors[2][32, 32] = 1e6
+    fire = Buffers.from_subsets(colors, [4] * 4, [feats] * 4)
+    a, b = lp.reconstruct(clean, params), lp.reconstruct(fire, params)
+    assert np.all(np.isfinite(b.image)) and np.all(np.isfinite(b.error))
+    reach = (b.info["passes"] + 1) * 3
+    yy, xx = np.mgrid[0:h, 0:w]
+    far = np.maximum(np.abs(yy - 32), np.abs(xx - 32)) > reach
+    assert far.sum() > 0.5 * h * w
+    # equal up to the summation order of overlapping predictions
+    assert np.allclose(a.image[far], b.image[far], rtol=1e-12, atol=1e-12)
+    assert np.allclose(a.error[far], b.error[far], rtol=1e-12, atol=1e-15)
+
+
+@pytest.mark.parametrize("value", [0.0, 0.37])
+def test_constant_images(value):
+    h, w = 24, 24
+    feats = scene_features(h, w, seed=24)
+    truth = np.full((h, w, 3), value)
+    exact = Buffers.from_subsets([truth] * 2, [2, 2], [feats] * 2)
+    assert np.array_equal(lp.reconstruct(exact).image, truth)
+    noisy = make_buffers(truth, feats, sigma=0.2, seed=25)
+    res = lp.reconstruct(noisy)
+    assert mse(res.image, truth) < 0.1 * mse(noisy.color.mean, truth)
+
+
+@pytest.mark.parametrize("shape", [(1, 1), (1, 9), (9, 1), (3, 5), (7, 11), (13, 17)])
+def test_tiny_and_prime_sized_images_with_windows_larger_than_the_image(shape):
+    h, w = shape
+    feats = scene_features(h, w, seed=26)
+    truth = 0.5 * feats["albedo"]
+    buf = make_buffers(truth, feats, sigma=0.2, seed=27)
+    res = lp.reconstruct(buf, lp.Params(radius=9))
+    assert res.image.shape == (h, w, 3) and res.error.shape == (h, w)
+    assert np.all(np.isfinite(res.image)) and np.all(np.isfinite(res.error)) and np.all(res.error >= 0)
+    if h * w == 1:
+        assert np.array_equal(res.image, buf.color.mean)
+    counts = lp.sample_map(buf, res, 50, lp.Params(), {})
+    assert counts.sum() == 50 and counts.min() >= 0
+
+
+_BAD = st.sampled_from([np.nan, np.inf, -np.inf, 1e30, -1e30, -5.0, 1e6])
+
+
+@settings(max_examples=15, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(shape=st.sampled_from([(1, 1), (1, 7), (5, 3), (11, 13), (24, 24)]),
+       bad=st.lists(st.tuples(st.integers(0, 10 ** 6), _BAD, st.sampled_from(["color", "depth", "normal", "albedo"])),
+                    min_size=0, max_size=12),
+       subsets=st.integers(1, 3), seed=st.integers(0, 1000), radius=st.sampled_from([1, 2, 4]))
+def test_hostile_input_gives_finite_output(shape, bad, subsets, seed, radius):
+    h, w = shape
+    rng = np.random.default_rng(seed)
+    feats = scene_features(h, w, seed=seed)
+    truth = 0.5 * feats["albedo"]
+    colors, fl = [], []
+    for _ in range(subsets):
+        c = truth + rng.normal(0, 0.1, truth.shape)
+        f = {k: v.copy() for k, v in feats.items()}
+        for pos, val, where in bad:
+            arr = c if where == "color" else f[where]
+            arr.reshape(-1)[pos % arr.size] = val
+        colors.append(c)
+        fl.append(f)
+    buf = Buffers.from_subsets(colors, [3] * subsets, fl)
+    with np.errstate(all="ignore"):
+        res = lp.reconstruct(buf, lp.Params(radius=radius))
+        counts = lp.sample_map(buf, res, 3 * h * w, lp.Params(radius=radius), {})
+    assert np.all(np.isfinite(res.image)) and np.all(np.isfinite(res.error)) and np.all(res.error >= 0)
+    assert counts.dtype == np.int64 and counts.sum() == 3 * h * w and counts.min() >= 0
+
+
+# ------------------------------------------------------------------------- sampling
+def test_sample_map_is_sec_5_2_and_sums_to_the_budget():
+    h, w = 32, 40
+    feats = scene_features(h, w, seed=28)
+    truth = 0.6 * feats["albedo"]
+    buf = make_buffers(truth, feats, sigma=0.3, seed=29)
+    params = lp.Params()
+    res = lp.reconstruct(buf, params)
+    state = {}
+    counts = lp.sample_map(buf, res, 4 * h * w, params, state)
+    assert counts.dtype == np.int64 and counts.shape == (h, w)
+    assert counts.sum() == 4 * h * w and counts.min() >= 0
+    fit = res.info["lp_fit"]
+    rho = (fit.delta_error / (fit.image ** 2 + params.epsilon)).mean(axis=-1)
+    assert np.array_equal(counts, allocate(rho, 4 * h * w))
+    assert state["iterations"] == 1
+    # without the stored fit, sample_map recomputes it
+    from core.method import MethodResult
+    assert np.array_equal(lp.sample_map(buf, MethodResult(res.image, res.error, {}), 4 * h * w, params, {}),
+                          counts)
+
+
+def test_sample_map_sends_samples_where_the_error_is():
+    h, w = 32, 48
+    feats = scene_features(h, w, seed=30)
+    truth = 0.5 * feats["albedo"]
+    sigma = np.where(np.arange(w)[None, :] < 24, 0.6, 0.05) * np.ones((h, 1))
+    buf = make_buffers(truth, feats, seed=31, sigma_map=sigma)
+    res = lp.reconstruct(buf)
+    counts = lp.sample_map(buf, res, 8 * h * w, lp.Params(), {})
+    assert counts[:, :24].sum() > 3 * counts[:, 24:].sum()
+
+
+def test_more_samples_give_a_smaller_error_estimate():
+    h, w = 32, 32
+    feats = scene_features(h, w, seed=32)
+    truth = 0.5 * feats["albedo"] * (1 + 0.3 * np.sin(np.arange(w) / 2.0))[None, :, None]
+    few = make_buffers(truth, feats, sigma=0.4, spp=2, seed=33)
+    many = make_buffers(truth, feats, sigma=0.4, spp=64, seed=33)
+    ef, em = lp.reconstruct(few), lp.reconstruct(many)
+    assert em.error.mean() < ef.error.mean()
+    assert mse(em.image, truth) < mse(ef.image, truth)
+
+
+# --------------------------------------------------------------------------- contract
+def test_params_metadata_and_validation():
+    assert lp.PASSES == ("normal", "albedo", "depth")
+    for f in fields(lp.Params):
+        assert f.type in ("int", "float", "bool", "str", int, float, bool, str)
+        assert f.metadata["help"] and "min" in f.metadata and "max" in f.metadata
+    p = params_from_dict(lp.Params, {"radius": 5, "delta": 0.01, "unknown": 1})
+    assert (p.radius, p.delta) == (5, 0.01)
+    with pytest.raises(ValueError):
+        params_from_dict(lp.Params, {"radius": 99})
+    d = lp.Params()
+    assert (d.radius, d.delta, d.epsilon) == (9, 1e-3, 1e-3)
+
+
+def test_denoise_equals_reconstruct():
+    h, w = 20, 26
+    feats = scene_features(h, w, seed=34)
+    truth = 0.5 * feats["albedo"]
+    buf = make_buffers(truth, feats, sigma=0.2, seed=35)
+    a = lp.reconstruct(buf)
+    fv = {k: buf.feature_variance(k) for k in feats}
+    b = lp.denoise(buf.color.mean, buf.variance_of_mean(), {k: buf.feature(k) for k in feats},
+                   feature_var=fv, n=buf.n)
+    assert np.array_equal(a.image, b.image) and np.array_equal(a.error, b.error)
+    assert set(a.info) >= {"center_fraction", "centers", "passes", "mean_radius", "mean_rank"}
+
+
+def test_missing_feature_passes_are_skipped():
+    h, w = 24, 24
+    feats = scene_features(h, w, seed=36)
+    truth = 0.5 * feats["albedo"]
+    buf = make_buffers(truth, {"albedo": feats["albedo"]}, sigma=0.2, seed=37)
+    res = lp.reconstruct(buf)
+    assert np.all(np.isfinite(res.image))
+    assert mse(res.image, truth) < 0.2 * mse(buf.color.mean, truth)
+
+
+def test_noisy_feature_is_dropped_by_the_tsvd():
+    """A feature that is pure noise (e.g. depth of field on a texture) carries a
+    large variance of its mean; the TSVD threshold drops it and the model shrinks."""
+    h, w = 32, 32
+    feats = scene_features(h, w, texture=False, seed=38)
+    truth = np.full((h, w, 3), 0.4) + 0.01 * np.arange(w)[None, :, None]
+    rng = np.random.default_rng(39)
+    colors, fl = [], []
+    for _ in range(4):
+        colors.append(truth + rng.normal(0, 0.05, truth.shape))
+        f = dict(feats)
+        f["albedo"] = 0.5 + rng.normal(0, 0.3, (h, w, 3))       # noise only, different per subset
+        fl.append(f)
+    noisy = Buffers.from_subsets(colors, [4] * 4, fl)
+    quiet = Buffers.from_subsets(colors, [4] * 4, [dict(fl[0])] * 4)   # same values, no variance
+    rn = lp.reconstruct(noisy).info["lp_fit"].center_rank.mean()
+    rq = lp.reconstruct(quiet).info["lp_fit"].center_rank.mean()
+    assert rn < rq - 2
+
+
+def test_granularity_one_places_a_model_at_every_pixel():
+    h, w = 20, 20
+    feats = scene_features(h, w, seed=40)
+    buf = make_buffers(0.5 * feats["albedo"], feats, sigma=0.2, seed=41)
+    res = lp.reconstruct(buf, lp.Params(granularity=1, radius=3))
+    assert res.info["center_fraction"] == 1.0 and res.info["passes"] == 1
+    coarse = lp.reconstruct(buf, lp.Params(radius=3))
+    assert coarse.info["center_fraction"] < 1.0 and coarse.info["passes"] > 1
+
+
+def test_empty_buffers_give_zeros():
+    buf = Buffers.empty(6, 7, lp.PASSES)
+    res = lp.reconstruct(buf)
+    assert np.array_equal(res.image, np.zeros((6, 7, 3))) and np.array_equal(res.error, np.zeros((6, 7)))
+    counts = lp.sample_map(buf, res, 42, lp.Params(), {})
+    assert counts.sum() == 42 and np.all(counts == 1)
