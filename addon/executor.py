@@ -296,6 +296,28 @@ class CyclesExecutor:
             feats[f] = sum(passes[n].astype(np.float64) for n in names)
         return color.astype(np.float64), feats
 
+    def camera_info(self, frame: int) -> dict:
+        """Camera of ``frame`` as numpy arrays (for reprojection):
+        ``world_to_camera`` (4, 4), ``projection`` (4, 4) camera -> clip space
+        (Blender's ``calc_matrix_camera`` for the full frame), ``position`` (3,)
+        in world space, ``width``/``height`` of the full frame and ``domain``
+        (x0, y0, x1, y1) of the rendered region in it."""
+        s = self.scene
+        if s.frame_current != frame:
+            s.frame_set(frame)
+        cam = s.camera
+        depsgraph = bpy.context.evaluated_depsgraph_get()
+        cam_eval = cam.evaluated_get(depsgraph)
+        r = s.render
+        proj = cam_eval.calc_matrix_camera(depsgraph, x=self.full_w, y=self.full_h,
+                                           scale_x=r.pixel_aspect_x, scale_y=r.pixel_aspect_y)
+        mw = cam_eval.matrix_world
+        return {"world_to_camera": np.array(mw.inverted(), np.float64),
+                "projection": np.array(proj, np.float64),
+                "position": np.array(mw.translation, np.float64),
+                "width": self.full_w, "height": self.full_h, "domain": tuple(self.domain),
+                "frame": frame}
+
     # --------------------------------------------------------------- preview
     def write_preview(self, rgba: np.ndarray, path: str) -> None:
         """PNG in the scene's view transform (Blender applies it on save)."""

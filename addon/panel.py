@@ -30,6 +30,9 @@ class CYCLESADAPTIVE_PT_panel(bpy.types.Panel):
         col.prop(s, "max_seconds")
         col.prop(s, "seed")
         col.prop(s, "output_path")
+        col.prop(s, "frame_range")
+        if s.frame_range:
+            col.prop(s, "temporal")
         col.prop(s, "overwrite")
         cls = _param_classes.get(s.method)
         group = getattr(s, f"params_{s.method}", None)

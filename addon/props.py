@@ -96,6 +96,15 @@ class CYCLESADAPTIVE_PG_settings(bpy.types.PropertyGroup):
     output_path: StringProperty(name="Output", subtype="FILE_PATH", default="//adaptive.exr",
                                 description="Multilayer EXR written after the run (a PNG preview "
                                             "goes beside it)")
+    frame_range: BoolProperty(name="Frame Range", default=False,
+                              description="Render the scene's frame range (one output per frame, "
+                                          "#### in the output path is the frame number)")
+    temporal: EnumProperty(name="Reuse Frames", default="none",
+                           items=[("none", "Independent", "Every frame from scratch"),
+                                  ("reproject", "Reproject", "Reuse the previous frame's samples where "
+                                   "reprojection is valid (Schalk 2018): fewer samples per frame, "
+                                   "slight bias on moving highlights")],
+                           description="How frames of a range reuse earlier samples")
     overwrite: BoolProperty(name="Overwrite", default=False,
                             description="Replace an existing output file")
     # progress, shown by the panel while the operator runs

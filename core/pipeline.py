@@ -44,6 +44,7 @@ from .method import allocate, params_from_dict
 
 CHECKPOINT_VERSION = 1
 TOP_UP = 3
+MAX_EXACT_TASKS = 64  # most renders a pixel-exact fallback plan may take
 
 
 @dataclass
@@ -95,7 +96,11 @@ class Timing:
 class AdaptiveRun:
     """State of one adaptive render of one frame."""
 
-    def __init__(self, executor, options: Options, checkpoint: str | None = None):
+    def __init__(self, executor, options: Options, checkpoint: str | None = None, prior=None):
+        """``prior``: optional callable ``prior(run) -> Buffers | None`` called
+        once after the initial pass; the Buffers it returns (e.g. samples
+        reprojected from the previous frame) are merged in and counted in
+        ``reused``, not against the render budget."""
         self.executor = executor
         self.options = options
         self.method = methods.get(options.method)
@@ -124,12 +129,15 @@ class AdaptiveRun:
         self.overshoot = 0
         self.done = False
         self.checkpoint_path = checkpoint
+        self.prior = prior
+        self.reused = np.zeros((self.height, self.width))  # samples merged from ``prior``
         self.history: list = []
 
     # ------------------------------------------------------------- accounting
     @property
     def samples_rendered(self) -> int:
-        return 0 if self.buffers is None else int(round(self.buffers.n.sum()))
+        """Samples rendered by this run (reused samples not included)."""
+        return 0 if self.buffers is None else int(round(self.buffers.n.sum() - self.reused.sum()))
 
     @property
     def remaining(self) -> int:
@@ -145,6 +153,14 @@ class AdaptiveRun:
         t_start = time.perf_counter()
         if self.buffers is None:
             yield from self._initial_pass()
+            if self.prior is not None:
+                extra = self.prior(self)
+                if extra is not None:
+                    self.reused += extra.n
+                    self.buffers.merge(extra)
+                    yield Progress("initial", 0, self._fraction(),
+                                   f"reused {int(extra.n.sum())} samples on "
+                                   f"{int((extra.n > 0).sum())} pixels from the previous frame")
             self._save_checkpoint()
         tol = max(1, int(0.009 * self.budget))  # the total lands within 1 % of the budget
         # up to TOP_UP extra iterations spend what rounding to rectangles left over
@@ -246,11 +262,16 @@ class AdaptiveRun:
             ask = int(ask * min(budget, limit) / cov * (0.97 if cov > limit else 1.0))
             if ask <= 0:
                 break
-        if best is None:  # even small maps round up past the limit: plan exactly
+        if best is None:  # even small maps round up past the limit
             state = copy.deepcopy(self.method_state)
             counts = np.asarray(self.method.sample_map(self.buffers, result, max(limit, 0), self.params,
                                                        state), np.int64)
+            # pixel-exact plan when it needs few renders, else exact at block
+            # resolution (the tasks past the limit are dropped below)
             plan = regions.plan(counts, frame=self.options.frame, min_size=1, task_cost=0.0)
+            if plan.n_tasks > MAX_EXACT_TASKS:
+                plan = regions.plan(counts, frame=self.options.frame, min_size=self.options.min_task_size,
+                                    task_cost=0.0)
             best = (counts, plan, state)
         counts, plan, state = best
         self.method_state = state
@@ -274,7 +295,7 @@ class AdaptiveRun:
             return
         b = self.buffers
         arrays = {"n": b.n, "k": b.k, "color_mean": b.color.mean, "color_m2": b.color.m2,
-                  "next_index": self.next_index}
+                  "next_index": self.next_index, "reused": self.reused}
         for name, st in b.features.items():
             arrays[f"feat_mean__{name}"] = st.mean
             arrays[f"feat_m2__{name}"] = st.m2
@@ -319,6 +340,8 @@ class AdaptiveRun:
                 b.features[name] = Stat(data[key].copy(), data["feat_m2__" + name].copy())
         self.buffers = b
         self.next_index = data["next_index"].copy()
+        if "reused" in data.files:
+            self.reused = data["reused"].copy()
         self.iteration = int(meta["iteration"])
         self.tasks_rendered = int(meta["tasks_rendered"])
         self.overshoot = int(meta["overshoot"])

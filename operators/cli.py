@@ -74,11 +74,22 @@ def build_parser(blender_command: bool = False) -> argparse.ArgumentParser:
     r.add_argument("--reference", help="reference EXR to measure relMSE against")
     r.add_argument("--resolution-percentage", type=int, help="override the scene's resolution %%")
     r.add_argument("--frame", type=int, help="frame to render (default: the scene's current frame)")
+    r.add_argument("--frames", help="frame range A-B (or A-B:STEP): one output per frame, OUT_####.exr "
+                   "(a run of # in --out is replaced by the frame number)")
+    r.add_argument("--temporal", choices=["none", "reproject", "lp"], default="none",
+                   help="frame ranges: 'reproject' reuses the previous frame's samples where "
+                        "reprojection is valid (Schalk 2018); 'lp' adds LP's temporal regression "
+                        "over frames (Moon 2015 Sec. 6, with --method lp)")
     r.add_argument("--seed", type=int, default=0, help="Cycles seed")
     r.add_argument("--scene", help="scene name (default: the active scene)")
     r.add_argument("--view-layer", help="view layer name (default: the active view layer)")
     r.add_argument("--max-seconds", type=float, default=0.0, help="stop sampling after this many "
                    "seconds (0: no limit)")
+    r.add_argument("--min-task-size", type=int, default=8, help="smallest region render side in "
+                   "pixels; smaller follows the sample map more closely, more renders")
+    r.add_argument("--task-cost", type=float, default=None, help="fixed cost of one region render "
+                   "in pixel-samples; higher merges more regions (fewer renders, samples less "
+                   "adaptive)")
     r.add_argument("--overwrite", action="store_true", help="replace existing output files")
     r.add_argument("--resume", action="store_true", help="continue from OUT.exr.checkpoint.npz")
     r.add_argument("--no-preview", action="store_true", help="do not write the PNG preview")
@@ -98,11 +109,11 @@ def build_parser(blender_command: bool = False) -> argparse.ArgumentParser:
 
     b = sub.add_parser("bench", help="measure the speed/accuracy trade against uniform, "
                        "Cycles adaptive sampling and OIDN")
-    b.add_argument("--scenes", nargs="*")
-    b.add_argument("--methods", nargs="*")
-    b.add_argument("--budgets", default="4,8,16,32")
-    b.add_argument("--out", default="bench_out")
-    b.add_argument("--quick", action="store_true", help="tiny resolution, one budget (< 3 minutes)")
+    ref = sub.add_parser("references", help="render (and cache) the high-spp references of the "
+                         "sample scenes")
+    from . import bench, references
+    bench.add_arguments(b)
+    references.add_arguments(ref)
     return p
 
 
@@ -120,6 +131,9 @@ def main(argv=None, blender_command: bool = False) -> int:
         if args.command == "bench":
             from . import bench
             return bench.main(args)
+        if args.command == "references":
+            from . import references
+            return references.main(args)
     except KeyboardInterrupt:
         print("interrupted", file=sys.stderr)
         return EXIT_INTERRUPT
@@ -182,7 +196,14 @@ def cmd_render(args, blender_command=False) -> int:
     frame = scene.frame_current if args.frame is None else args.frame
     opts = Options(method=args.method, spp=args.spp, initial_spp=args.initial_spp,
                    subsets=args.subsets, iterations=args.iterations, frame=frame, seed=args.seed,
-                   max_seconds=args.max_seconds, params=method_params(args, args.method))
+                   max_seconds=args.max_seconds, min_task_size=args.min_task_size,
+                   params=method_params(args, args.method))
+    if args.task_cost is not None:
+        if args.task_cost < 0:
+            raise UserError("--task-cost must be >= 0")
+        opts.task_cost = args.task_cost
+    if args.frames:
+        return _render_frames(args, scene, vl, opts)
     out = args.out or default_out(bpy.data.filepath or "untitled.blend", args.method)
     job = RenderJob(scene, vl, opts, out, reference=args.reference, overwrite=args.overwrite,
                     resume=args.resume, preview=not args.no_preview)
@@ -201,6 +222,34 @@ def cmd_render(args, blender_command=False) -> int:
     summary = job.finish(partial=interrupted)
     _report(summary, args.json)
     return EXIT_INTERRUPT if interrupted else EXIT_OK
+
+
+def _render_frames(args, scene, vl, opts) -> int:
+    from .job import FramesJob, parse_frames
+    if args.frame is not None:
+        raise UserError("give --frame or --frames, not both")
+    frames = parse_frames(args.frames, scene)
+    out = args.out or default_out(bpy_filepath(), args.method, "_####")
+    job = FramesJob(scene, vl, opts, out, frames, reference_pattern=args.reference, temporal=args.temporal,
+                    overwrite=args.overwrite, resume=args.resume, preview=not args.no_preview)
+    interrupted = False
+    try:
+        for step in job.steps():
+            if isinstance(step, dict):  # a frame finished
+                _report(step, args.json)
+            elif not args.quiet and step.stage != "render":
+                print(f"[cycles-adaptive] {100 * step.fraction:5.1f}% {step.message}", flush=True)
+    except KeyboardInterrupt:
+        interrupted = True
+        if job.job is not None and job.job.run is not None and job.job.run.buffers is not None:
+            _report(job.job.finish(partial=True), args.json)
+    _report(job.summary(), args.json)
+    return EXIT_INTERRUPT if interrupted else EXIT_OK
+
+
+def bpy_filepath() -> str:
+    import bpy
+    return bpy.data.filepath or "untitled.blend"
 
 
 def cmd_denoise(args) -> int:

@@ -169,6 +169,10 @@ class RenderJob:
         self.reference_path = reference
         self.run: AdaptiveRun | None = None
         self.executor = None
+        self.prior = None          # callable(run) -> Buffers of reused samples (frame ranges)
+        self.reconstructor = None  # callable(run) -> MethodResult replacing run.reconstruct()
+        self.camera = None         # camera matrices of the rendered frame
+        self.reproject_info: dict = {}
         self.t0 = time.perf_counter()
         self.summary: dict | None = None
 
@@ -180,7 +184,8 @@ class RenderJob:
                                                seed=self.options.seed)
         self.reference = load_reference(self.reference_path, self.executor.size)
         with self.executor:
-            self.run = AdaptiveRun(self.executor, self.options, checkpoint=self.ckpt)
+            self.camera = self.executor.camera_info(self.options.frame)
+            self.run = AdaptiveRun(self.executor, self.options, checkpoint=self.ckpt, prior=self.prior)
             if self.resume:
                 try:
                     self.run.load_checkpoint(self.ckpt)
@@ -193,7 +198,12 @@ class RenderJob:
         run = self.run
         if run is None or run.buffers is None:
             raise JobError("nothing was rendered")
-        result = run.reconstruct()
+        if self.reconstructor is not None:
+            t0 = time.perf_counter()
+            result = self.reconstructor(run)
+            run.timing.reconstruct += time.perf_counter() - t0
+        else:
+            result = run.reconstruct()
         image = np.where(np.isfinite(result.image), result.image, 0.0)
         error = np.where(np.isfinite(result.error), result.error, 0.0)
         t_write = time.perf_counter()
@@ -237,11 +247,16 @@ class RenderJob:
             "out": self.out,
             "preview": preview_path(self.out) if self.preview else None,
             "partial": bool(partial),
+            "reused_samples": int(run.reused.sum()),
+            "reprojected_fraction": float((run.reused > 0).mean()),
             "blender": bpy.app.version_string,
         }
         for k, v in result.info.items():
             if isinstance(v, (int, float, str, bool)):
                 summary[k] = v
+        for k, v in self.reproject_info.items():
+            if isinstance(v, (int, float, str, bool)):
+                summary[f"reproject_{k}"] = v
         if self.reference is not None:
             summary["relmse"] = metrics.relmse(image, self.reference)
             summary["smape"] = metrics.smape(image, self.reference)
@@ -260,3 +275,195 @@ def bpy_path(path: str) -> str:
 
 def _jsonable(d):
     return json.loads(json.dumps(d, default=lambda o: list(o) if isinstance(o, tuple) else str(o)))
+
+
+def frame_path(pattern: str, frame: int) -> str:
+    """Output path of one frame: a run of '#' in ``pattern`` becomes the
+    zero-padded frame number (Blender's convention); without '#', ``_####`` is
+    inserted before the extension."""
+    import re
+    m = list(re.finditer(r"#+", pattern))
+    if m:
+        last = m[-1]
+        return pattern[:last.start()] + str(frame).zfill(len(last.group())) + pattern[last.end():]
+    stem, ext = os.path.splitext(pattern)
+    return f"{stem}_{frame:04d}{ext or '.exr'}"
+
+
+def parse_frames(text: str, scene) -> list:
+    """'A-B' or 'A' (or 'A-B:STEP') -> frame list, inside the scene's range."""
+    try:
+        body, _, step = text.partition(":")
+        a, _, b = body.partition("-")
+        a, b = int(a), int(b or a)
+        step = int(step or 1)
+    except ValueError:
+        raise JobError(f"--frames {text!r}: expected A-B, A or A-B:STEP") from None
+    if b < a or step < 1:
+        raise JobError(f"--frames {text!r}: empty range")
+    lo, hi = scene.frame_start, scene.frame_end
+    if a < lo or b > hi:
+        raise JobError(f"--frames {a}-{b} is outside the scene's frame range {lo}-{hi}")
+    return list(range(a, b + 1, step))
+
+
+def crop_projection(cam: dict) -> np.ndarray:
+    """Camera-to-clip matrix of the rendered domain (the scene's border, if
+    any): Blender's projection covers the full frame; this maps the domain's
+    pixels to NDC [-1, 1] (x' = a x + b w in clip space)."""
+    w_full, h_full = cam["width"], cam["height"]
+    x0, y0, x1, y1 = cam["domain"]
+    w, h = x1 - x0, y1 - y0
+    crop = np.eye(4)
+    crop[0, 0], crop[0, 3] = w_full / w, (w_full - 2 * x0) / w - 1.0
+    crop[1, 1], crop[1, 3] = h_full / h, 1.0 - (h_full - 2 * y0) / h
+    return crop @ cam["projection"]
+
+
+def to_camera(cam: dict):
+    from ..core import reproject
+    return reproject.Camera(cam["world_to_camera"], crop_projection(cam), cam["position"])
+
+
+class _ReprojectVar:
+    """The var method with Algorithm 2's sampler (Schalk 2018): pixels that were
+    not reprojected are sampled first (core/reproject.py ``sample_map``)."""
+
+    def __init__(self):
+        from ..core import reproject, var
+        self.PASSES, self.Params, self.ADAPTIVE = var.PASSES, var.Params, True
+        self.reconstruct = var.reconstruct
+        self.sample_map = reproject.sample_map
+
+
+class FramesJob:
+    """Adaptive render of a frame range, one RenderJob per frame.
+
+    Each frame gets the seed ``options.seed + frame`` (like Cycles' animated
+    seed), so samples reused from the previous frame are independent of the new
+    frame's.  ``temporal``:
+    - ``"none"``: frames are independent;
+    - ``"reproject"``: after each frame's initial pass, the previous frame's
+      accumulated samples are forward-reprojected into it where valid (Schalk
+      2018 Sec. 3.2-3.3, core/reproject.py) and merged; reused samples do not
+      count against the frame's budget; with ``var`` the sampler is Algorithm
+      2's (not-reprojected pixels first);
+    - ``"lp"``: LP's temporal extension (Moon 2015 Sec. 6, core/temporal.py):
+      per-pixel lambda-weighted RLS over frames on top of each frame's LP
+      reconstruction (method must be ``lp``).
+    """
+
+    MODES = ("none", "reproject", "lp")
+
+    def __init__(self, scene, view_layer, options: Options, out_pattern: str, frames: list,
+                 reference_pattern: str | None = None, temporal: str = "none", **job_kw):
+        if temporal not in self.MODES:
+            raise JobError(f"unknown temporal mode {temporal!r} (choose {', '.join(self.MODES)})")
+        if temporal == "lp" and options.method != "lp":
+            raise JobError("--temporal lp needs --method lp")
+        self.scene, self.view_layer = scene, view_layer
+        self.options, self.frames = options, list(frames)
+        self.out_pattern, self.reference_pattern = out_pattern, reference_pattern
+        self.temporal, self.job_kw = temporal, job_kw
+        self.summaries: list = []
+        self.job: RenderJob | None = None
+        self._prev = None  # (buffers, camera dict, method state) of the previous frame
+        self._temporal_state = None
+        for f in self.frames:  # refuse up front, before any frame is rendered
+            out = frame_path(out_pattern, f)
+            try:
+                imageio.check_writable(out, job_kw.get("overwrite", False) or job_kw.get("resume", False))
+            except imageio.ImageFileError as exc:
+                raise JobError(str(exc)) from None
+
+    def steps(self):
+        import dataclasses
+        for i, f in enumerate(self.frames):
+            opts = dataclasses.replace(self.options, frame=f, seed=self.options.seed + f)
+            if self.temporal != "none":
+                opts.features = tuple(dict.fromkeys(tuple(opts.features) + REPROJECT_PASSES))
+            ref = frame_path(self.reference_pattern, f) if self.reference_pattern else None
+            self.job = RenderJob(self.scene, self.view_layer, opts, frame_path(self.out_pattern, f),
+                                 reference=ref, **self.job_kw)
+            if self.temporal == "reproject":
+                self.job.prior = self._reproject_prior
+            elif self.temporal == "lp":
+                self.job.reconstructor = self._lp_temporal
+            for p in self.job.steps():
+                p.message = f"frame {f} ({i + 1}/{len(self.frames)}): {p.message}"
+                p.fraction = (i + p.fraction) / len(self.frames)
+                yield p
+            summary = self.job.finish()
+            self.summaries.append(summary)
+            self._prev = (self.job.run.buffers, self.job.camera, self.job.run.method_state)
+            yield summary
+
+    def _reproject_prior(self, run):
+        from ..core import reproject
+        if self._prev is None:
+            return None
+        prev_buf, prev_cam, prev_state = self._prev
+        extra = None
+        if self.options.method == "var":
+            prob = prev_state.get("prob")
+            if prob is None or np.shape(prob) != prev_buf.shape:
+                prob = np.full(prev_buf.shape, np.nan)
+            extra = {"probability": np.asarray(prob, np.float64)}
+        res = reproject.reproject(prev_buf, to_camera(prev_cam), run.buffers, to_camera(self.job.camera),
+                                  extra=extra)
+        if self.options.method == "var":
+            run.method = _ReprojectVar()
+            run.method_state["probability"] = res.extra["probability"]
+        info = {"fraction": res.fraction}
+        info.update({k: v for k, v in res.counts.items() if isinstance(v, (int, float))})
+        self.job.reproject_info = info
+        return res.buffers
+
+    def _lp_temporal(self, run):
+        """Final reconstruction of a frame with LP's temporal extension."""
+        from ..core import reproject, temporal
+        static = run.method.reconstruct(run.buffers, run.params)
+        center = None
+        if self._prev is not None:
+            prev_buf, prev_cam, _ = self._prev
+            center = reproject.backward_coordinates(to_camera(prev_cam), to_camera(self.job.camera),
+                                                    run.buffers, prev_buf.shape)
+        res = temporal.step(self._temporal_state, run.buffers, frame=self.job.options.frame,
+                            static=static, center=center)
+        self._temporal_state = res.state
+        out = res.method_result()
+        out.info.update({f"temporal_{k}": v for k, v in res.info.items() if isinstance(v, (int, float))})
+        if "center_fraction" in static.info:
+            out.info["center_fraction"] = static.info["center_fraction"]
+        return out
+
+    @property
+    def run(self):
+        """The run of the frame in progress (for the operator's stepper)."""
+        return None if self.job is None else self.job.run
+
+    def finish(self, partial: bool = False) -> dict:
+        """After the last frame: the range summary.  On a cancel: write the
+        frame in progress as a partial result, then the summary."""
+        if partial and self.job is not None and self.job.run is not None and \
+                (not self.summaries or self.summaries[-1]["out"] != self.job.out):
+            self.summaries.append(self.job.finish(partial=True))
+        summ = self.summary()
+        summ["out"] = summ["outs"][-1] if summ["outs"] else ""
+        return summ
+
+    def summary(self) -> dict:
+        s = self.summaries
+        out = {"frames": len(s), "method": self.options.method, "temporal": self.temporal,
+               "total_seconds": sum(x["total_seconds"] for x in s),
+               "render_seconds": sum(x["render_seconds"] for x in s),
+               "spp_mean": float(np.mean([x["spp_mean"] for x in s])) if s else 0.0,
+               "reprojected_fraction": float(np.mean([x.get("reprojected_fraction", 0.0) for x in s]))
+               if s else 0.0, "outs": [x["out"] for x in s]}
+        if s and all("relmse" in x for x in s):
+            out["relmse_mean"] = float(np.mean([x["relmse"] for x in s]))
+        return out
+
+
+#: passes the reprojection needs (world position, specular share, object ids)
+REPROJECT_PASSES = ("position", "glossy", "transmission", "object_index", "normal", "depth")

@@ -7,13 +7,13 @@ script or under ``blender -b``) runs the same job synchronously.
 """
 from __future__ import annotations
 
-import time
 import traceback
 
 import bpy
 
 from ..core.pipeline import Options
-from .job import JobError, RenderJob
+from .job import FramesJob, JobError, RenderJob
+from .stepper import Stepper
 
 STEP_SECONDS = 0.05  # work per timer tick before handing control back to the UI
 
@@ -26,7 +26,7 @@ def _options(scene) -> Options:
                    max_seconds=s.max_seconds, params=method_params(s, s.method))
 
 
-def _show(job: RenderJob):
+def _show(job):
     from ..addon.display import show_result
     run = job.run
     if run is None or run.buffers is None:
@@ -45,7 +45,7 @@ class CYCLESADAPTIVE_OT_render(bpy.types.Operator):
 
     _timer = None
     _job = None
-    _steps = None
+    _stepper = None
 
     @classmethod
     def poll(cls, context):
@@ -59,6 +59,8 @@ class CYCLESADAPTIVE_OT_render(bpy.types.Operator):
             for _ in job.steps():
                 pass
             summary = job.finish()
+            if "frames" in summary:
+                summary.setdefault("spp_mean", 0.0)
         except JobError as exc:
             self.report({"ERROR"}, str(exc))
             return {"CANCELLED"}
@@ -80,7 +82,7 @@ class CYCLESADAPTIVE_OT_render(bpy.types.Operator):
         except Exception as exc:
             self.report({"ERROR"}, str(exc))
             return {"CANCELLED"}
-        self._steps = self._job.steps()
+        self._stepper = Stepper(self._job, STEP_SECONDS)
         s = context.scene.cycles_adaptive
         s.running, s.progress, s.status = True, 0.0, "Starting"
         wm = context.window_manager
@@ -95,17 +97,15 @@ class CYCLESADAPTIVE_OT_render(bpy.types.Operator):
         if event.type != "TIMER":
             return {"PASS_THROUGH"}
         s = context.scene.cycles_adaptive
-        t_end = time.perf_counter() + STEP_SECONDS
         try:
-            while time.perf_counter() < t_end:
-                step = next(self._steps)
-                s.progress, s.status = step.fraction, step.message
-        except StopIteration:
-            return self._end(context, cancelled=False)
+            ended = self._stepper.step()
         except Exception as exc:
             self.report({"ERROR"}, f"adaptive render failed: {exc}")
             traceback.print_exc()
             return self._end(context, cancelled=True, failed=True)
+        s.progress, s.status = self._stepper.fraction, self._stepper.message
+        if ended:
+            return self._end(context, cancelled=False)
         context.window_manager.progress_update(int(1000 * s.progress))
         context.workspace.status_text_set(f"Cycles Adaptive: {100 * s.progress:.0f}% {s.status}")
         for area in context.screen.areas if context.screen else ():
@@ -122,12 +122,10 @@ class CYCLESADAPTIVE_OT_render(bpy.types.Operator):
         if context.workspace:
             context.workspace.status_text_set(None)
         s = context.scene.cycles_adaptive
-        if self._steps is not None:
-            self._steps.close()  # leaves the executor: scene settings restored
         s.running = False
         try:
-            if self._job is not None and self._job.run is not None and self._job.run.buffers is not None:
-                summary = self._job.finish(partial=cancelled)
+            summary = self._stepper.cancel() if cancelled else self._stepper.summary
+            if summary is not None:
                 _show(self._job)
                 what = "Cancelled" if cancelled else "Done"
                 s.status = f"{what}: {summary['spp_mean']:.1f} spp, wrote {summary['out']}"
@@ -139,9 +137,16 @@ class CYCLESADAPTIVE_OT_render(bpy.types.Operator):
         self.report({"WARNING" if cancelled else "INFO"}, s.status)
         return {"CANCELLED"} if cancelled or failed else {"FINISHED"}
 
-    def _make_job(self, context) -> RenderJob:
+    def _make_job(self, context):
         scene = context.scene
         s = scene.cycles_adaptive
+        if s.frame_range:
+            frames = list(range(scene.frame_start, scene.frame_end + 1, max(1, scene.frame_step)))
+            out = s.output_path if "#" in s.output_path else \
+                s.output_path.replace(".exr", "_####.exr") if s.output_path.endswith(".exr") \
+                else s.output_path + "_####.exr"
+            return FramesJob(scene, context.view_layer, _options(scene), out, frames,
+                             temporal=s.temporal, overwrite=s.overwrite)
         return RenderJob(scene, context.view_layer, _options(scene), s.output_path,
                          overwrite=s.overwrite)
 

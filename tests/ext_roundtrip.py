@@ -30,8 +30,15 @@ s.output_path = out
 s.params_var.min_spp = 2  # a method parameter exposed in the panel
 rr_before = bpy.data.images.get("Render Result")
 result = bpy.ops.cycles_adaptive.render()
+# the scene's frame range through the same operator: one output per frame
+scene.frame_start, scene.frame_end = 1, 2
+s.frame_range = True
+s.output_path = out.replace(".exr", "_####.exr")
+result_range = bpy.ops.cycles_adaptive.render()
+range_files = [os.path.isfile(out.replace(".exr", f"_{f:04d}.exr")) for f in (1, 2)]
 images = sorted(i.name for i in bpy.data.images if i.name.startswith("Cycles Adaptive"))
 print("RESULT " + json.dumps({"op": sorted(result), "exists": os.path.isfile(out),
                               "png": os.path.isfile(os.path.splitext(out)[0] + ".png"),
                               "images": images, "status": s.status,
+                              "range_op": sorted(result_range), "range_files": range_files,
                               "border_restored": not scene.render.use_border}))

@@ -45,3 +45,4 @@ def test_build_validate_install_and_run_operator(tmp_path):
     assert res["exists"] and res["png"], res
     assert res["images"] == ["Cycles Adaptive Error", "Cycles Adaptive Result", "Cycles Adaptive Samples"]
     assert res["border_restored"]
+    assert res["range_op"] == ["FINISHED"] and res["range_files"] == [True, True], res

@@ -1,0 +1,504 @@
+"""LP's temporal extension (Moon, Iglesias-Guitian, Yoon, Mitchell 2015, Sec. 6, Eq. 6).
+
+At frame t the static reconstruction (LP, Sec. 4-5) gives the filtered image
+``y(t)``.  Every pixel i keeps a linear model in time, ``y_i(t) ~ beta_i^T z_i(t)``
+with ``z = (1, t)``, updated by lambda-weighted recursive least squares (Eq. 6):
+
+    G_i(t)    = P_i(t-1) z_i(t) / (lambda + z_i(t)^T P_i(t-1) z_i(t))
+    P_i(t)    = lambda^-1 (P_i(t-1) - G_i(t) z_i(t)^T P_i(t-1))
+    beta_i(t) = beta_i(t-1) + G_i(t) (y_i(t) - beta_i(t-1)^T z_i(t))
+
+which minimises ``sum_j lambda^(t-j) (beta^T z(j) - y(j))^2`` (plus the
+initial condition's ``lambda^t delta |beta - beta(0)|^2``, which is what makes
+the recursion exact: :func:`closed_form` is that weighted least squares and
+the tests compare the two).  The output is ``beta_i(t)^T z_i(t)``.  Before the
+update, each pixel takes the model (beta, P) of the pixel o of frame t-1 in a
+search window that maximises ``(|W_o(t-1) - W_i(t)|^2 |y_i(t) - beta_o(t-1)^T
+z_i(t)|^2)^-1`` (W: world position of the primary hit), i.e. minimises the
+product.  Initialisation as for the static models (Sec. 7):
+``beta(0) = (y_i, 0)``, ``P(0) = I / delta``.
+
+Call :func:`step` once per frame, in order, with the previous frame's state.
+
+Choices where the paper is silent (each tested)
+-----------------------------------------------
+* **Time variable.**  ``t`` counts frames from the model's birth (``t = 1`` in
+  the frame a model is initialised, as frame 1 of the paper's sequence), and a
+  carried model keeps its own count.  A model born late in a shot would
+  otherwise start with ``z = (1, 400)``, where ``P(0) = I/delta`` pins its slope
+  to ~0 for dozens of frames.  Frame numbers that skip (``--frames`` with a
+  step) advance ``t`` by the difference; lambda weights once per update.
+* **Search window.**  ``search_radius`` (default 3, a 7x7 window) around the
+  pixel itself, or around ``center`` (e.g. ``reproject.backward_coordinates``,
+  the pixel's first hit projected into the previous camera) so camera motion
+  larger than the window is followed.  Candidates are visited ring by ring
+  from the centre; ties go to the smaller prediction error, then the nearer
+  candidate.
+* **Gates.**  The paper always carries the best candidate.  A model from an
+  unrelated surface (a camera cut, a disocclusion) would then smear for
+  ~1 / (1 - lambda) = 50 frames, so (a) candidates must lie within
+  ``position_tolerance * depth_i`` of ``W_i`` (0 turns the gate off; it needs
+  the depth pass) and be background exactly when pixel i is (Position
+  (0, 0, 0), as in ``core.reproject``); (b) the chosen model is dropped when
+  its prediction misses by more than ``reset_sigma`` standard deviations:
+  ``mean_c e_c^2 > reset_sigma^2 ((sigma_i^2 + (0.01 y)^2) (1 + z^T P z /
+  lambda) + v)``, ``v`` the model's own noise variance (below), so a fresh
+  model (large ``P``) is never dropped for learning its slope, and a sudden
+  illumination change (a moving shadow) restarts the model instead of being
+  blurred in.  ``reset_sigma = 0`` turns it off.  Without any usable
+  candidate the pixel starts a new model (paper initialisation).
+* **Error estimate** (the paper gives none).  With ``sigma_j^2`` the static
+  estimate's error at frame j (LP's ``xi``; the variance of the mean with
+  ``spatial = False``), treated as independent between frames, the covariance
+  ``C = Var(beta)`` follows ``C(t) = A C(t-1) A^T + sigma_t^2 G G^T``,
+  ``A = I - G z^T`` (``C = sigma^2 e_0 e_0^T`` for a new model, which is
+  ``(y, 0)`` exactly).  The output ``(1 - g) beta(t-1)^T z + g y(t)``
+  (``g = z^T G``) has variance ``z^T C(t) z``.  The carried prediction's
+  squared bias is estimated from the a-priori residuals, whose expectation is
+  ``b^2 + sigma_t^2 + v`` (``v = z^T C(t-1) z``): ``b^2 = max(0, B)`` with
+  ``B`` the lambda-weighted mean over the model's life of
+  ``mean_c(e_c^2) - sigma_t^2 - v`` (one frame's residual alone is too noisy:
+  clamping it at 0 would add ~0.4 sigma^2 to every estimate); it enters as
+  ``(1 - g)^2 b^2``.  Averaged over RGB.
+  Caveat: LP's own bias repeats from frame to frame in a still scene, so the
+  variance part is optimistic there.
+* **Missing data.**  A pixel with a non-finite ``y`` keeps its carried model
+  unchanged and outputs its prediction (error ``v`` + the frame's largest
+  error); a pixel with an unknown (non-finite) position outputs its ``y``
+  unfiltered and keeps no model (nothing could find it again); with no model
+  and no ``y`` the output is 0 with the frame's largest error.  The
+  Position pass itself is required (``ValueError`` otherwise).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from .buffers import Buffers
+from .lp_solve import ring_layout
+from .method import MethodResult, params_from_dict
+
+PASSES = ("position", "depth")
+
+#: relative floor of the residual gate's noise level (1 % of the value)
+REL_FLOOR = 0.01
+
+
+@dataclass
+class Params:
+    """Temporal extension parameters (LP paper Sec. 6; defaults from the paper where it gives one)."""
+
+    lam: float = field(default=0.98, metadata={
+        "help": "forgetting factor lambda of Eq. 6 (paper: 0.98): weight of frame t-j is lambda^j; "
+                "closer to 1 averages more frames (less noise, more lag on changes)",
+        "min": 0.5, "max": 1.0})
+    delta: float = field(default=1e-3, metadata={
+        "help": "RLS initial confidence delta, P(0) = I/delta (paper Sec. 7: 0.001); larger keeps "
+                "new models near (y, 0) longer",
+        "min": 1e-9, "max": 1.0})
+    search_radius: int = field(default=3, metadata={
+        "help": "half width of the window searched for the best previous model (paper: 'a search "
+                "window', no size); larger follows faster motion, costs (2r+1)^2 tests per pixel",
+        "min": 0, "max": 16})
+    position_tolerance: float = field(default=0.05, metadata={
+        "help": "carried models must come from within this fraction of the pixel's depth of its "
+                "world position (0 = no gate, the literal paper); smaller restarts more models",
+        "min": 0.0, "max": 10.0})
+    reset_sigma: float = field(default=4.0, metadata={
+        "help": "restart a model whose prediction misses by more than this many standard "
+                "deviations (sudden lighting changes); 0 = never (the literal paper)",
+        "min": 0.0, "max": 100.0})
+    spatial: bool = field(default=True, metadata={
+        "help": "filter each frame with static LP first and feed its output to Eq. 6 (paper); off "
+                "feeds the raw pixel means (faster, noisier)"})
+    chunk: int = field(default=65536, metadata={
+        "help": "pixels processed per vectorised batch (memory ~ 0.5 KB per pixel in flight)",
+        "min": 256, "max": 4194304})
+
+    @classmethod
+    def from_dict(cls, values):
+        return params_from_dict(cls, values)
+
+
+@dataclass
+class TemporalState:
+    """Per-pixel temporal models after frame ``frame`` (arrays (H, W, ...)).
+
+    beta : (H, W, 3, 2) model coefficients per RGB channel.
+    P : (H, W, 2, 2) RLS matrix (shared by the channels: it depends on z only).
+    C : (H, W, 2, 2) noise covariance of beta per unit of the frame's error
+        (see the module docstring; shared by the channels).
+    age : (H, W) int64 model time t of the last update (1 = born then); 0 = no model.
+    bias_num, bias_den : (H, W) lambda-weighted sums of the excess squared
+        residual and of the weights (the bias estimate B = num / den).
+    position : (H, W, 3) world position W(t) the models belong to.
+    background : (H, W) bool, no surface hit.
+    """
+
+    frame: int
+    beta: np.ndarray
+    P: np.ndarray
+    C: np.ndarray
+    age: np.ndarray
+    position: np.ndarray
+    background: np.ndarray
+    bias_num: np.ndarray | None = None
+    bias_den: np.ndarray | None = None
+
+    def __post_init__(self):
+        if self.bias_num is None:
+            self.bias_num = np.zeros(self.age.shape)
+        if self.bias_den is None:
+            self.bias_den = np.zeros(self.age.shape)
+
+    @property
+    def shape(self):
+        return self.age.shape
+
+
+@dataclass
+class TemporalResult:
+    """image (H, W, 3), error (H, W) estimated squared error (absolute, RGB mean),
+    state for the next frame, source (H, W) int64 flat index of the previous
+    pixel whose model was carried (-1: new model), info (scalars)."""
+
+    image: np.ndarray
+    error: np.ndarray
+    state: TemporalState
+    source: np.ndarray
+    info: dict = field(default_factory=dict)
+
+    def method_result(self) -> MethodResult:
+        return MethodResult(self.image, self.error, dict(self.info))
+
+
+def _params(params) -> Params:
+    if params is None:
+        return Params()
+    if isinstance(params, Params):
+        return params
+    return params_from_dict(Params, params)
+
+
+# ----------------------------------------------------------------------------- RLS
+def rls_update(beta, P, C, z, y, sigma2, lam):
+    """One step of Eq. 6 for N models at once (and the covariance of the module docstring).
+
+    beta (N, 3, 2), P (N, 2, 2), C (N, 2, 2), z (N, 2), y (N, 3), sigma2 (N,).
+    Returns beta, P, C, prior prediction (N, 3), gain g = z^T G (N,), v = z^T C(t-1) z (N,).
+    """
+    pz = np.einsum("nij,nj->ni", P, z)
+    s = np.einsum("ni,ni->n", z, pz)
+    denom = lam + s
+    gain = pz / denom[:, None]                                     # G (N, 2)
+    pred = np.einsum("nci,ni->nc", beta, z)
+    err = y - pred
+    beta = beta + err[:, :, None] * gain[:, None, :]
+    P = (P - gain[:, :, None] * pz[:, None, :]) / lam
+    P = 0.5 * (P + np.swapaxes(P, 1, 2))
+    v = np.einsum("ni,nij,nj->n", z, C, z)
+    a = np.eye(2)[None] - gain[:, :, None] * z[:, None, :]
+    C = np.einsum("nij,njk,nlk->nil", a, C, a) + sigma2[:, None, None] * gain[:, :, None] * gain[:, None, :]
+    g = np.einsum("ni,ni->n", z, gain)
+    return beta, P, C, pred, g, v
+
+
+def new_models(y, sigma2, delta, lam):
+    """Models born at this frame: beta(0) = (y, 0), P(0) = I/delta (Sec. 7), then
+    Eq. 6 at t = 1 (its residual is 0, so beta stays (y, 0)).  Returns beta, P, C."""
+    n = y.shape[0]
+    beta = np.zeros((n, 3, 2))
+    beta[:, :, 0] = y
+    p0 = np.eye(2) / delta
+    z = np.ones(2)                                               # z(1) = (1, 1)
+    pz = p0 @ z
+    gain = pz / (lam + z @ pz)
+    P = np.broadcast_to((p0 - np.outer(gain, pz)) / lam, (n, 2, 2)).copy()
+    C = np.zeros((n, 2, 2))
+    C[:, 0, 0] = sigma2
+    return beta, P, C
+
+
+def closed_form(ys, lam: float, delta: float):
+    """Weighted least squares that Eq. 6 solves exactly, for checking.
+
+    ys : (T, ...) observations of frames t = 1..T of one model.
+    Minimises ``sum_j lam^(T-j) (beta^T (1, j) - y_j)^2 + lam^T delta |beta - (y_1, 0)|^2``;
+    returns beta (..., 2).
+    """
+    ys = np.asarray(ys, np.float64)
+    t_n = ys.shape[0]
+    z = np.stack([np.ones(t_n), np.arange(1, t_n + 1, dtype=np.float64)], 1)
+    wts = lam ** (t_n - np.arange(1, t_n + 1, dtype=np.float64))
+    a = lam ** t_n * delta * np.eye(2) + (z * wts[:, None]).T @ z
+    b0 = np.zeros(ys.shape[1:] + (2,))
+    b0[..., 0] = ys[0]
+    rhs = lam ** t_n * delta * b0 + np.einsum("t,ti,t...->...i", wts, z, ys)
+    return np.linalg.solve(a, rhs[..., None])[..., 0] if rhs.ndim > 1 else np.linalg.solve(a, rhs)
+
+
+# ----------------------------------------------------------------------------- inputs
+def _frame_inputs(buf: Buffers, params: Params, static, lp_params):
+    """y (H, W, 3), sigma2 (H, W), position (H, W, 3), depth (H, W) or None, background."""
+    if "position" not in buf.features:
+        raise ValueError("LP temporal needs the Position pass (world positions to carry models)")
+    if static is not None:
+        y = np.asarray(static.image, np.float64)
+        s2 = np.asarray(static.error, np.float64)
+    elif params.spatial:
+        from . import lp
+        res = lp.reconstruct(buf, lp_params)
+        y, s2 = res.image, res.error
+    else:
+        y = np.asarray(buf.color.mean, np.float64)
+        with np.errstate(invalid="ignore"):
+            s2 = buf.variance_of_mean().mean(axis=-1)
+    h, w = buf.shape
+    if y.shape != (h, w, 3) or s2.shape != (h, w):
+        raise ValueError(f"static result has shapes {y.shape}, {s2.shape}; the frame is {(h, w)}")
+    y_ok = np.all(np.isfinite(y), axis=-1) & (buf.n > 0)
+    fin = np.isfinite(s2) & (s2 >= 0)
+    top = float(s2[fin].max()) if fin.any() else 0.0
+    s2 = np.where(fin, s2, top)
+    pos = buf.features["position"].mean
+    pos_ok = np.all(np.isfinite(pos), axis=-1)
+    depth = None
+    if "depth" in buf.features:
+        depth = buf.features["depth"].mean[..., 0]
+    bg = np.all(pos == 0.0, axis=-1)
+    if depth is not None:
+        bg &= (depth == 0.0) | (depth >= 1e9)
+        depth = np.where(np.isfinite(depth) & (depth > 0) & (depth < 1e9), depth, np.nan)
+    return np.where(y_ok[..., None], y, 0.0), s2, y_ok, np.where(pos_ok[..., None], pos, 0.0), \
+        pos_ok, depth, bg & pos_ok, top
+
+
+# ----------------------------------------------------------------------------- step
+def step(state: TemporalState | None, buf: Buffers, params: Params | dict | None = None, *,
+         frame: int | None = None, static: MethodResult | None = None, lp_params=None,
+         center: np.ndarray | None = None) -> TemporalResult:
+    """One frame of LP's temporal extension (Sec. 6, Eq. 6).
+
+    Parameters
+    ----------
+    state : TemporalState or None
+        The state returned for the previous frame (None for the first frame of
+        a range or after a cut: every pixel starts a new model).
+    buf : Buffers (H, W)
+        The frame's accumulated samples; needs ``position`` (and ``depth`` for
+        the position gate).
+    params : Params or dict.
+    frame : int, the frame number (default: the previous state's + 1, or 1).
+    static : MethodResult or None
+        The frame's static reconstruction ``y(t)`` with its error (e.g. the
+        ``lp.reconstruct`` result the loop already computed); None computes it
+        (``lp.reconstruct(buf, lp_params)``, or the raw means with
+        ``params.spatial = False``).
+    lp_params : lp.Params or dict for the static reconstruction.
+    center : (H, W, 2) or None
+        Continuous (row, col) in the previous frame around which to search
+        (``reproject.backward_coordinates``); NaN entries and None use the
+        pixel's own position in the image.
+
+    Returns
+    -------
+    TemporalResult
+        ``image`` (H, W, 3) = beta(t)^T z(t), ``error`` (H, W) (module
+        docstring), the new ``state``, ``source`` and ``info`` (``carried``,
+        ``new``, ``reset_position``, ``reset_residual`` fractions, ``frame``).
+        All finite.
+    """
+    params = _params(params)
+    h, w = buf.shape
+    lam = float(params.lam)
+    delta = float(params.delta)
+    if frame is None:
+        frame = 1 if state is None else int(state.frame) + 1
+    frame = int(frame)
+    y, s2, y_ok, pos, pos_ok, depth, bg, top = _frame_inputs(buf, params, static, lp_params)
+    npx = h * w
+    new_state = TemporalState(frame, np.zeros((h, w, 3, 2)), np.zeros((h, w, 2, 2)),
+                              np.zeros((h, w, 2, 2)), np.zeros((h, w), np.int64),
+                              pos.copy(), bg.copy())
+    image = np.zeros((h, w, 3))
+    error = np.zeros((h, w))
+    source = np.full((h, w), -1, np.int64)
+    info = {"frame": frame, "carried": 0.0, "new": 0.0, "reset_position": 0.0,
+            "reset_residual": 0.0, "resized": False}
+    if npx == 0:
+        return TemporalResult(image, error, new_state, source, info)
+
+    usable_prev = state is not None and int(state.frame) < frame
+    if state is not None and center is None and state.shape != (h, w):
+        usable_prev = False
+        info["resized"] = True
+    if usable_prev:
+        hp, wp = state.shape
+        p_beta = state.beta.reshape(-1, 3, 2)
+        p_P = state.P.reshape(-1, 2, 2)
+        p_C = state.C.reshape(-1, 2, 2)
+        p_age = state.age.reshape(-1)
+        p_pos = state.position.reshape(-1, 3)
+        p_bg = state.background.reshape(-1)
+        p_bn = state.bias_num.reshape(-1)
+        p_bd = state.bias_den.reshape(-1)
+        dt = frame - int(state.frame)
+        # packed previous models: [position (3) | beta_c0 (3) | beta_c1 (3) | age | class]
+        # class 0: no model, 1: surface, 2: background
+        packed = np.empty((hp * wp, 11), np.float32)   # search only; updates use float64
+        packed[:, 0:3] = p_pos
+        packed[:, 3:6] = p_beta[:, :, 0]
+        packed[:, 6:9] = p_beta[:, :, 1]
+        packed[:, 9] = p_age
+        packed[:, 10] = np.where(p_age > 0, np.where(p_bg, 2.0, 1.0), 0.0)
+        dy, dx, _, _ = ring_layout(int(params.search_radius))
+    flat_y = y.reshape(-1, 3)
+    flat_s2 = s2.reshape(-1)
+    flat_yok = y_ok.reshape(-1)
+    flat_pos = pos.reshape(-1, 3)
+    flat_pok = pos_ok.reshape(-1)
+    flat_bg = bg.reshape(-1)
+    flat_depth = depth.reshape(-1) if depth is not None else None
+    cen = None
+    if center is not None:
+        cen = np.asarray(center, np.float64).reshape(-1, 2)
+        if cen.shape[0] != npx:
+            raise ValueError(f"center has shape {np.shape(center)}, the frame is {(h, w)}")
+    counts = {"carried": 0, "new": 0, "reset_position": 0, "reset_residual": 0}
+    chunk = max(int(params.chunk), 1)
+    for s0 in range(0, npx, chunk):
+        idx = np.arange(s0, min(npx, s0 + chunk))
+        m = idx.size
+        yi, s2i, yoki = flat_y[idx], flat_s2[idx], flat_yok[idx]
+        wi, poki, bgi = flat_pos[idx], flat_pok[idx], flat_bg[idx]
+        best = np.full(m, -1, np.int64)
+        if usable_prev:
+            if cen is not None:
+                c = cen[idx]
+                okc = np.all(np.isfinite(c), axis=1)
+                br = np.where(okc, np.floor(np.where(okc, c[:, 0], 0.0)), -10 ** 9).astype(np.int64)
+                bc = np.where(okc, np.floor(np.where(okc, c[:, 1], 0.0)), -10 ** 9).astype(np.int64)
+                if state.shape == (h, w):
+                    br = np.where(okc, br, idx // w)
+                    bc = np.where(okc, bc, idx % w)
+            else:
+                br, bc = idx // w, idx % w
+            if flat_depth is not None and params.position_tolerance > 0:
+                tol = params.position_tolerance * flat_depth[idx]
+                tol = np.where(np.isfinite(tol), tol, 0.0)           # background / unknown: exact
+            else:
+                tol = np.full(m, np.inf)
+            tol2 = tol * tol
+            best_score = np.full(m, np.inf)
+            best_e2 = np.full(m, np.inf)
+            any_gate = np.zeros(m, bool)
+            want = np.where(bgi, 2.0, 1.0)
+            for oy, ox in zip(dy, dx):
+                r = br + oy
+                cc = bc + ox
+                inside = (r >= 0) & (r < hp) & (cc >= 0) & (cc < wp)
+                j = np.where(inside, r * wp + cc, 0)
+                g = packed[j]                                # one gather per offset
+                cand = inside & (g[:, 10] == want) & poki
+                d2 = (g[:, 0] - wi[:, 0]) ** 2 + (g[:, 1] - wi[:, 1]) ** 2 + (g[:, 2] - wi[:, 2]) ** 2
+                gate = cand & (d2 <= tol2)
+                any_gate |= cand
+                t_loc = g[:, 9] + dt
+                e0 = yi[:, 0] - g[:, 3] - g[:, 6] * t_loc
+                e1 = yi[:, 1] - g[:, 4] - g[:, 7] * t_loc
+                e2_ = yi[:, 2] - g[:, 5] - g[:, 8] * t_loc
+                e2 = np.where(yoki, e0 * e0 + e1 * e1 + e2_ * e2_, 1.0)
+                with np.errstate(over="ignore", invalid="ignore"):
+                    score = d2 * e2
+                score = np.where(np.isnan(score), np.inf, score)
+                better = gate & ((score < best_score) | ((score == best_score) & (e2 < best_e2)))
+                best = np.where(better, j, best)
+                best_score = np.where(better, score, best_score)
+                best_e2 = np.where(better, e2, best_e2)
+            counts["reset_position"] += int(np.count_nonzero(any_gate & (best < 0)))
+        carried = best >= 0
+        # ---- carried models: Eq. 6
+        beta = np.zeros((m, 3, 2))
+        P = np.zeros((m, 2, 2))
+        C = np.zeros((m, 2, 2))
+        age = np.zeros(m, np.int64)
+        bnum = np.zeros(m)
+        bden = np.zeros(m)
+        out = np.zeros((m, 3))
+        err = np.zeros(m)
+        ci = np.flatnonzero(carried)
+        if ci.size:
+            j = best[ci]
+            t_loc = (p_age[j] + dt).astype(np.float64)
+            z = np.stack([np.ones(ci.size), t_loc], 1)
+            b_o, P_o, C_o = p_beta[j], p_P[j], p_C[j]
+            upd = yoki[ci]
+            b1, P1, C1, pred, g, v = rls_update(b_o, P_o, C_o, z, yi[ci], s2i[ci], lam)
+            e = yi[ci] - pred
+            # residual gate
+            if params.reset_sigma > 0:
+                s = np.einsum("ni,nij,nj->n", z, P_o, z)
+                floor = (REL_FLOOR ** 2) * (pred * pred).mean(axis=1) + 1e-300
+                lim = params.reset_sigma ** 2 * ((s2i[ci] + floor) * (1.0 + s / lam) + v)
+                with np.errstate(invalid="ignore", over="ignore"):
+                    drop = upd & ~((e * e).mean(axis=1) <= lim)
+            else:
+                drop = np.zeros(ci.size, bool)
+            counts["reset_residual"] += int(np.count_nonzero(drop))
+            keep = ~drop
+            # pixels without a usable y: keep the carried model, output its prediction
+            b1 = np.where(upd[:, None, None], b1, b_o)
+            P1 = np.where(upd[:, None, None], P1, P_o)
+            C1 = np.where(upd[:, None, None], C1, C_o)
+            zc = z
+            y_hat = np.einsum("nci,ni->nc", b1, zc)
+            var_out = np.einsum("ni,nij,nj->n", zc, C1, zc)
+            excess = (e * e).mean(axis=1) - s2i[ci] - v
+            bn = np.where(upd, lam * p_bn[j] + np.where(np.isfinite(excess), excess, 0.0), p_bn[j])
+            bd = np.where(upd, lam * p_bd[j] + 1.0, p_bd[j])
+            bias2 = np.maximum(bn / np.maximum(bd, 1e-300), 0.0)
+            e_out = np.where(upd, var_out + (1.0 - g) ** 2 * bias2, v + bias2 + top)
+            sel = ci[keep]
+            bnum[sel], bden[sel] = bn[keep], bd[keep]
+            beta[sel], P[sel], C[sel] = b1[keep], P1[keep], C1[keep]
+            age[sel] = t_loc[keep].astype(np.int64)
+            out[sel] = y_hat[keep]
+            err[sel] = e_out[keep]
+            carried[ci[drop]] = False
+            best[ci[drop]] = -1
+        # ---- new models (paper initialisation)
+        ni = np.flatnonzero(~carried & yoki & poki)
+        if ni.size:
+            b0, P0, C0 = new_models(yi[ni], s2i[ni], delta, lam)
+            beta[ni], P[ni], C[ni] = b0, P0, C0
+            age[ni] = 1
+            out[ni] = yi[ni]
+            err[ni] = s2i[ni]
+        nothing = ~carried & ~(yoki & poki)
+        out[nothing] = np.where(yoki[nothing, None], yi[nothing], 0.0)
+        err[nothing] = np.where(yoki[nothing], s2i[nothing], top)
+        counts["carried"] += int(np.count_nonzero(carried))
+        counts["new"] += int(ni.size)
+        new_state.beta.reshape(-1, 3, 2)[idx] = beta
+        new_state.P.reshape(-1, 2, 2)[idx] = P
+        new_state.C.reshape(-1, 2, 2)[idx] = C
+        new_state.age.reshape(-1)[idx] = age
+        new_state.bias_num.reshape(-1)[idx] = bnum
+        new_state.bias_den.reshape(-1)[idx] = bden
+        image.reshape(-1, 3)[idx] = out
+        error.reshape(-1)[idx] = err
+        source.reshape(-1)[idx] = np.where(carried, best, -1)
+    # never emit NaN/Inf
+    image = np.where(np.isfinite(image), image, 0.0)
+    fin = np.isfinite(error)
+    error = np.maximum(np.where(fin, error, float(error[fin].max()) if fin.any() else 0.0), 0.0)
+    for name in ("beta", "P", "C", "bias_num", "bias_den"):
+        a = getattr(new_state, name)
+        bad = ~np.all(np.isfinite(a.reshape(h, w, -1)), axis=-1)
+        if bad.any():
+            new_state.age[bad] = 0
+            a[bad] = 0.0
+    for k_, v_ in counts.items():
+        info[k_] = v_ / npx
+    return TemporalResult(image, error, new_state, source, info)

@@ -1,0 +1,261 @@
+"""LP temporal extension (core/temporal.py): Moon et al. 2015, Sec. 6, Eq. 6."""
+from __future__ import annotations
+
+from dataclasses import fields
+
+import numpy as np
+import pytest
+
+from core import temporal as tp
+from core.buffers import Buffers
+
+H, W = 12, 16
+
+
+#: world size of one pixel: 0.05 % of the depth (20), about a 1000-pixel-wide 50-degree view
+PIX = 0.01
+
+
+def plane_positions(h=H, w=W, shift=(0, 0)):
+    """World positions of a plane seen from above: pixel (r, c) at frame with
+    image shift (sy, sx) shows the point PIX * (c - sx, r - sy, 0) + offset."""
+    r, c = np.mgrid[0:h, 0:w].astype(np.float64)
+    return np.stack([PIX * (c - shift[1]) + 1.0, PIX * (r - shift[0]) + 0.5, np.zeros_like(r)], -1)
+
+
+def frame_buffers(truth, rng, pos, k=4, spp=4, noise=0.2, depth=20.0):
+    h, w = truth.shape[:2]
+    feats = {"position": pos, "depth": np.full((h, w, 1), depth)}
+    colors = [truth * (1 + noise * rng.standard_normal(truth.shape) / np.sqrt(spp)) for _ in range(k)]
+    return Buffers.from_subsets(colors, [spp] * k, [feats] * k)
+
+
+def smooth_truth(pos):
+    return np.stack([0.5 + 0.3 * np.sin(pos[..., 0] * 30), 0.4 + 0.2 * np.cos(pos[..., 1] * 20),
+                     0.3 + 0.0 * pos[..., 0]], -1)
+
+
+def test_params_metadata():
+    for f in fields(tp.Params):
+        assert "help" in f.metadata and f.metadata["help"]
+    p = tp.Params()
+    assert p.lam == 0.98 and p.delta == 1e-3
+
+
+def test_rls_equals_closed_form_weighted_least_squares():
+    rng = np.random.default_rng(0)
+    pos = plane_positions()
+    params = tp.Params(spatial=False, reset_sigma=0.0)
+    state, ys = None, []
+    for f in range(101, 113):                   # frame numbers need not start at 1
+        truth = 0.5 + 0.02 * (f - 100) + 0.1 * rng.random((H, W, 3))
+        buf = frame_buffers(truth, rng, pos)
+        ys.append(buf.color.mean.copy())
+        res = tp.step(state, buf, params, frame=f)
+        state = res.state
+        beta = tp.closed_form(np.stack(ys), params.lam, params.delta)     # (H, W, 3, 2)
+        np.testing.assert_allclose(state.beta, beta, rtol=1e-6, atol=1e-9)
+        t = len(ys)
+        np.testing.assert_allclose(res.image, beta[..., 0] + beta[..., 1] * t, rtol=1e-6, atol=1e-9)
+        np.testing.assert_array_equal(state.age, t)
+    # P is (lam^T delta I + sum lam^(T-j) z z^T)^-1
+    t_n = len(ys)
+    z = np.stack([np.ones(t_n), np.arange(1, t_n + 1.0)], 1)
+    wts = params.lam ** (t_n - np.arange(1, t_n + 1.0))
+    p_inv = params.lam ** t_n * params.delta * np.eye(2) + (z * wts[:, None]).T @ z
+    np.testing.assert_allclose(state.P[3, 4], np.linalg.inv(p_inv), rtol=1e-6)
+    # and with a tiny delta it is plain weighted least squares
+    tiny = tp.closed_form(np.stack(ys), 0.98, 1e-12)
+    a = (z * wts[:, None]).T @ z
+    plain = np.linalg.solve(a, np.einsum("t,ti,thwc->hwci", wts, z, np.stack(ys))[..., None])[..., 0]
+    np.testing.assert_allclose(tiny, plain, rtol=1e-6, atol=1e-9)
+
+
+def test_static_scene_converges():
+    rng = np.random.default_rng(1)
+    pos = plane_positions()
+    truth = smooth_truth(pos)
+    state = None
+    true_err, est_err = [], []
+    for f in range(1, 31):
+        buf = frame_buffers(truth, rng, pos, noise=0.5)
+        res = tp.step(state, buf, tp.Params(spatial=False), frame=f)
+        state = res.state
+        true_err.append(float(((res.image - truth) ** 2).mean()))
+        est_err.append(float(res.error.mean()))
+    assert res.info["carried"] == 1.0
+    # a linear fit over n frames: endpoint variance ~ 4 sigma^2 / n
+    assert true_err[-1] < 0.25 * true_err[0]
+    assert np.mean(true_err[-5:]) < np.mean(true_err[5:10])
+    assert est_err[-1] < 0.3 * est_err[0]
+    # the estimate tracks the true error within a factor of 2
+    assert 0.5 < np.mean(est_err[-10:]) / np.mean(true_err[-10:]) < 2.0
+
+
+def test_static_scene_converges_with_lp():
+    rng = np.random.default_rng(2)
+    pos = plane_positions(24, 24)
+    truth = smooth_truth(pos)
+    state = None
+    errs = []
+    for f in range(1, 7):
+        buf = frame_buffers(truth, rng, pos, noise=0.6)
+        res = tp.step(state, buf, tp.Params(), frame=f, lp_params={"radius": 3})
+        state = res.state
+        errs.append(float(((res.image - truth) ** 2).mean()))
+        assert np.isfinite(res.image).all() and np.isfinite(res.error).all()
+    assert errs[-1] < errs[0]
+
+
+def test_linear_ramp_is_followed_without_lag():
+    """z = (1, t): a brightness ramp is predicted exactly once two frames are in
+    (noise-free input), and the residual gate does not restart the models."""
+    pos = plane_positions()
+    state = None
+    for f in range(1, 8):
+        truth = np.full((H, W, 3), 0.2 + 0.05 * f)
+        buf = Buffers.from_subsets([truth, truth], [2, 2], [{"position": pos,
+                                                             "depth": np.full((H, W, 1), 20.0)}] * 2)
+        res = tp.step(state, buf, tp.Params(spatial=False), frame=f)
+        state = res.state
+        np.testing.assert_allclose(res.image, truth, rtol=1e-3)     # the delta prior's pull
+    assert res.info["reset_residual"] == 0 and res.info["carried"] == 1.0
+    np.testing.assert_allclose(state.beta[..., 1], 0.05, rtol=1e-3)
+
+
+def test_model_carried_to_the_right_pixel_under_a_known_shift():
+    rng = np.random.default_rng(3)
+    shift = (1, 2)                               # image moves down 1, right 2 per frame
+    state = None
+    for f in range(4):
+        s = (shift[0] * f, shift[1] * f)
+        pos = plane_positions(shift=s)
+        truth = smooth_truth(pos)
+        res = tp.step(state, frame_buffers(truth, rng, pos), tp.Params(spatial=False), frame=f + 1)
+        if state is not None:
+            r, c = np.mgrid[0:H, 0:W]
+            inside = (r - shift[0] >= 0) & (c - shift[1] >= 0)
+            np.testing.assert_array_equal(res.source[inside], ((r - shift[0]) * W + c - shift[1])[inside])
+            # pixels entering the view have no true source: a fresh model, or (as in the
+            # paper, which always carries) a neighbour's within the position gate
+            src = res.source[~inside]
+            got = src >= 0
+            d = np.linalg.norm(state.position.reshape(-1, 3)[src[got]] - pos[~inside][got], axis=1)
+            assert (d <= tp.Params().position_tolerance * 20.0).all()
+            np.testing.assert_array_equal(res.state.age[inside], f + 1)
+        state = res.state
+
+
+def test_large_motion_followed_with_center_map():
+    rng = np.random.default_rng(4)
+    big = (0, 6)                                 # beyond the 7x7 search window
+    pos0 = plane_positions()
+    s0 = tp.step(None, frame_buffers(smooth_truth(pos0), rng, pos0), tp.Params(spatial=False), frame=1)
+    pos1 = plane_positions(shift=big)
+    buf1 = frame_buffers(smooth_truth(pos1), rng, pos1)
+    lost = tp.step(s0.state, buf1, tp.Params(spatial=False), frame=2)
+    r, c = np.mgrid[0:H, 0:W].astype(np.float64)
+    true_src = (r * W + c - big[1]).astype(np.int64)
+    assert not (lost.source == true_src).any()             # the true source is out of reach
+    center = np.stack([r + 0.5 - big[0], c + 0.5 - big[1]], -1)
+    center[:, :big[1]] = np.nan                            # no previous pixel there
+    found = tp.step(s0.state, buf1, tp.Params(spatial=False), frame=2, center=center)
+    ok = c >= big[1]
+    np.testing.assert_array_equal(found.source[ok], true_src[ok])
+
+
+def test_camera_cut_starts_fresh_models_no_smear():
+    rng = np.random.default_rng(5)
+    pos0 = plane_positions()
+    state = None
+    for f in range(1, 6):
+        state = tp.step(state, frame_buffers(smooth_truth(pos0), rng, pos0), tp.Params(spatial=False),
+                        frame=f).state
+    pos1 = pos0 + np.array([50.0, -30.0, 7.0])            # another place of the world
+    buf = frame_buffers(np.full((H, W, 3), 2.0), rng, pos1)
+    res = tp.step(state, buf, tp.Params(spatial=False), frame=6)
+    assert res.info["carried"] == 0.0 and res.info["new"] == 1.0
+    np.testing.assert_array_equal(res.image, buf.color.mean)
+    assert (res.source == -1).all() and (res.state.age == 1).all()
+
+
+def test_sudden_illumination_change_restarts_models():
+    rng = np.random.default_rng(6)
+    pos = plane_positions()
+    truth = smooth_truth(pos)
+    state = None
+    for f in range(1, 11):
+        state = tp.step(state, frame_buffers(truth, rng, pos, noise=0.1), tp.Params(spatial=False),
+                        frame=f).state
+    dark = truth.copy()
+    dark[:, :W // 2] *= 0.2                                 # a shadow falls on the left half
+    buf = frame_buffers(dark, rng, pos, noise=0.1)
+    res = tp.step(state, buf, tp.Params(spatial=False), frame=11)
+    left = np.zeros((H, W), bool)
+    left[:, :W // 2] = True
+    assert res.info["reset_residual"] == pytest.approx(0.5, abs=0.02)
+    assert (res.state.age[left] == 1).all() and (res.state.age[~left] == 11).all()
+    np.testing.assert_array_equal(res.image[left], buf.color.mean[left])
+    # the literal paper (no gate) blurs the change in
+    lit = tp.step(state, buf, tp.Params(spatial=False, reset_sigma=0.0), frame=11)
+    assert np.abs(lit.image[left] - dark[left]).mean() > 5 * np.abs(res.image[left] - dark[left]).mean()
+
+
+def test_background_models_only_match_background():
+    rng = np.random.default_rng(7)
+    pos = plane_positions()
+    pos[:, :4] = 0.0                                        # sky on the left
+    feats_depth = np.full((H, W, 1), 20.0)
+    feats_depth[:, :4] = 0.0
+    truth = smooth_truth(plane_positions())
+    def buf_():
+        colors = [truth * (1 + 0.1 * rng.standard_normal(truth.shape)) for _ in range(4)]
+        return Buffers.from_subsets(colors, [4] * 4, [{"position": pos, "depth": feats_depth}] * 4)
+    s1 = tp.step(None, buf_(), tp.Params(spatial=False), frame=1)
+    assert s1.state.background[:, :4].all() and not s1.state.background[:, 4:].any()
+    s2 = tp.step(s1.state, buf_(), tp.Params(spatial=False), frame=2)
+    src = s2.source
+    assert (src[:, :4] >= 0).all()
+    assert ((src[:, :4] % W) < 4).all()                    # sky models come from the sky
+    assert ((src[:, 4:] % W) >= 4).all()
+
+
+def test_hostile_input_finite():
+    rng = np.random.default_rng(8)
+    pos = plane_positions()
+    buf = frame_buffers(smooth_truth(pos), rng, pos)
+    s1 = tp.step(None, buf, tp.Params(spatial=False), frame=1)
+    bad = buf.copy()
+    bad.color.mean[2:4, 2:6] = np.nan
+    bad.color.mean[5, 5] = np.inf
+    bad.features["position"].mean[7:9, 1:3] = np.nan
+    bad.n[10, 10] = 0
+    res = tp.step(s1.state, bad, tp.Params(spatial=False), frame=2)
+    for a in (res.image, res.error, res.state.beta, res.state.P, res.state.C):
+        assert np.isfinite(a).all()
+    assert (res.source[2:4, 2:6] >= 0).all()               # kept the carried models
+    assert (res.state.age[7:9, 1:3] == 0).all()            # no position: no model
+    # with LP as the static filter too
+    res_lp = tp.step(s1.state, bad, tp.Params(), frame=2, lp_params={"radius": 2})
+    assert np.isfinite(res_lp.image).all() and np.isfinite(res_lp.error).all()
+    # everything non-finite
+    allbad = buf.copy()
+    allbad.color.mean[...] = np.nan
+    allbad.features["position"].mean[...] = np.nan
+    r2 = tp.step(None, allbad, tp.Params(spatial=False), frame=1)
+    assert np.isfinite(r2.image).all() and np.isfinite(r2.error).all()
+    # zero size
+    e = Buffers.empty(0, 4, ("position",))
+    r3 = tp.step(None, e, tp.Params(spatial=False))
+    assert r3.image.shape == (0, 4, 3)
+    # resolution change without a center map: fresh models
+    small = frame_buffers(smooth_truth(plane_positions(6, 8)), rng, plane_positions(6, 8))
+    r4 = tp.step(s1.state, small, tp.Params(spatial=False), frame=2)
+    assert r4.info["resized"] and r4.info["carried"] == 0.0
+    # missing Position pass: clear error
+    nopos = Buffers.from_subsets([buf.color.mean], [1])
+    with pytest.raises(ValueError, match="Position"):
+        tp.step(None, nopos, tp.Params(spatial=False))
+    # same frame again (state not older than the frame): fresh, not a crash
+    r5 = tp.step(s1.state, buf, tp.Params(spatial=False), frame=1)
+    assert r5.info["carried"] == 0.0

@@ -1,0 +1,180 @@
+"""The command line contract (DESIGN.md): JSON fields, bad input, interrupts,
+resume.  Runs ./cycles-adaptive as a user would (subprocesses)."""
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+
+import numpy as np
+import pytest
+
+bpy = pytest.importorskip("bpy")
+
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+CLI = os.path.join(ROOT, "cycles-adaptive")
+ENV = dict(os.environ, CYCLES_ADAPTIVE_PYTHON=sys.executable)  # the CLI under this test's Blender
+FIELDS = ("method", "width", "height", "spp_mean", "render_seconds", "reconstruct_seconds",
+          "total_seconds", "regions", "peak_rss_mb", "out")
+
+
+def _blend(tmp_path, name="s.blend", **kw):
+    from blend_util import save_scene
+    path = tmp_path / name
+    save_scene(path, **kw)
+    return str(path)
+
+
+def _cli(*args, timeout=600):
+    return subprocess.run([CLI, *args], capture_output=True, text=True, timeout=timeout, env=ENV)
+
+
+def _last_json(stdout):
+    return json.loads(stdout.strip().splitlines()[-1])
+
+
+def test_render_json_has_the_contract_fields(tmp_path):
+    blend = _blend(tmp_path, width=32, height=24)
+    out = str(tmp_path / "o.exr")
+    ref = str(tmp_path / "ref.exr")
+    r = _cli("render", blend, "--method", "uniform", "--spp", "16", "--out", ref, "--json", "--seed", "7")
+    assert r.returncode == 0, r.stderr
+    r = _cli("render", blend, "--method", "var", "--spp", "6", "--initial-spp", "2", "--out", out,
+             "--reference", ref, "--json", "--task-cost", "64")
+    assert r.returncode == 0, r.stderr
+    res = _last_json(r.stdout)
+    for k in FIELDS + ("relmse",):
+        assert k in res, k
+    assert res["method"] == "var" and (res["width"], res["height"]) == (32, 24)
+    assert abs(res["spp_mean"] - 6) <= 0.06
+    assert res["relmse"] > 0 and os.path.isfile(out) and os.path.isfile(str(tmp_path / "o.png"))
+    assert not os.path.exists(out + ".checkpoint.npz")
+    assert "[cycles-adaptive]" in r.stdout  # batch progress lines
+    from cycles_adaptive.core import io as imageio
+    passes, meta = imageio.read_layers(out)
+    for p in ("Combined", "Noisy", "Variance", "M2", "Samples", "Groups", "Error", "Feat_alpha"):
+        assert p in passes, p
+    assert passes["Samples"].sum() == pytest.approx(res["spp_mean"] * 32 * 24)
+
+
+def test_resolution_percentage_and_frame(tmp_path):
+    blend = _blend(tmp_path, width=40, height=20)
+    r = _cli("render", blend, "--method", "uniform", "--spp", "2", "--resolution-percentage", "50",
+             "--frame", "3", "--out", str(tmp_path / "h.exr"), "--json", "--no-preview")
+    assert r.returncode == 0, r.stderr
+    res = _last_json(r.stdout)
+    assert (res["width"], res["height"], res["frame"]) == (20, 10, 3)
+
+
+@pytest.mark.parametrize("case", ["exists", "folder", "eevee", "missing_blend", "bad_spp"])
+def test_bad_input_gives_one_line_and_exit_2(tmp_path, case):
+    blend = _blend(tmp_path, width=16, height=16, engine="EEVEE" if case == "eevee" else "CYCLES")
+    out = tmp_path / "o.exr"
+    args = ["render", blend, "--method", "uniform", "--spp", "2", "--out", str(out)]
+    if case == "exists":
+        out.write_bytes(b"precious")
+    elif case == "folder":
+        args[-1] = str(tmp_path / "no" / "such" / "o.exr")
+    elif case == "missing_blend":
+        args[1] = str(tmp_path / "nope.blend")
+    elif case == "bad_spp":
+        args[5] = "0"
+    r = _cli(*args)
+    assert r.returncode == 2, (r.returncode, r.stderr)
+    err = [ln for ln in r.stderr.splitlines() if ln.startswith("error:")]
+    assert len(err) == 1 and "Traceback" not in r.stderr
+    if case == "exists":
+        assert out.read_bytes() == b"precious"
+        assert "--overwrite" in err[0]
+    if case == "eevee":
+        assert "Cycles" in err[0]
+
+
+def _exr_arrays(path):
+    from cycles_adaptive.core import io as imageio
+    return imageio.read_layers(path)[0]
+
+
+def _start(args):
+    return subprocess.Popen([CLI, *args], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=ENV)
+
+
+def _wait_for(proc, needle, timeout=300):
+    t_end = time.time() + timeout
+    lines = []
+    while time.time() < t_end:
+        line = proc.stdout.readline()
+        if not line:
+            break
+        lines.append(line)
+        if needle in line:
+            return lines
+    raise AssertionError(f"never saw {needle!r}: {''.join(lines)[-2000:]}")
+
+
+RUN = ["--method", "var", "--spp", "12", "--initial-spp", "2", "--subsets", "2", "--iterations", "6",
+       "--task-cost", "64", "--no-preview", "--json"]
+
+
+def test_sigkill_then_resume_equals_uninterrupted_run(tmp_path):
+    blend = _blend(tmp_path, width=48, height=32)
+    full = str(tmp_path / "full.exr")
+    r = _cli("render", blend, "--out", full, *RUN)
+    assert r.returncode == 0, r.stderr
+    out = str(tmp_path / "killed.exr")
+    p = _start(["render", blend, "--out", out, *RUN])
+    _wait_for(p, "iteration 2 done")
+    p.send_signal(signal.SIGKILL)
+    p.wait()
+    assert os.path.isfile(out + ".checkpoint.npz") and not os.path.exists(out)
+    r = _cli("render", blend, "--out", out, "--resume", *RUN)
+    assert r.returncode == 0, r.stderr
+    a, b = _exr_arrays(full), _exr_arrays(out)
+    for name in ("Combined", "Samples", "M2", "Noisy"):
+        np.testing.assert_array_equal(a[name], b[name])
+
+
+def test_ctrl_c_writes_the_partial_result(tmp_path):
+    blend = _blend(tmp_path, width=48, height=32)
+    out = str(tmp_path / "part.exr")
+    p = _start(["render", blend, "--out", out, *RUN])
+    _wait_for(p, "iteration 1 done")
+    p.send_signal(signal.SIGINT)
+    stdout, stderr = p.communicate(timeout=300)
+    assert p.returncode == 130, stderr
+    res = _last_json(stdout)
+    assert res["partial"] is True and os.path.isfile(out)
+    assert os.path.isfile(out + ".checkpoint.npz")  # kept, so --resume can continue
+    assert res["spp_mean"] < 12
+
+
+def test_blender_cli_command_runs_the_same_job(tmp_path):
+    """What `blender -b scene.blend -c cycles_adaptive render ...` calls."""
+    from cycles_adaptive.operators import cli
+    blend = _blend(tmp_path, width=16, height=16)
+    bpy.ops.wm.open_mainfile(filepath=blend)
+    out = str(tmp_path / "b.exr")
+    rc = cli.blender_command(["render", "--method", "uniform", "--spp", "2", "--out", out, "--quiet"])
+    assert rc == 0 and os.path.isfile(out)
+
+
+def test_frame_range_writes_one_output_per_frame(tmp_path):
+    blend = os.path.join(ROOT, "sample_blends", "animated.blend")
+    out = str(tmp_path / "anim_####.exr")
+    r = _cli("render", blend, "--frames", "2-3", "--method", "var", "--spp", "4", "--initial-spp", "2",
+             "--resolution-percentage", "25", "--out", out, "--json", "--task-cost", "64")
+    assert r.returncode == 0, r.stderr
+    lines = [json.loads(ln) for ln in r.stdout.splitlines() if ln.startswith("{")]
+    assert [ln.get("frame") for ln in lines[:-1]] == [2, 3]
+    for ln in lines[:-1]:
+        assert "reprojected_fraction" in ln and os.path.isfile(ln["out"])
+    assert lines[-1]["frames"] == 2 and os.path.isfile(str(tmp_path / "anim_0003.png"))
+
+
+def test_frame_range_outside_the_scene_is_refused(tmp_path):
+    blend = os.path.join(ROOT, "sample_blends", "animated.blend")
+    r = _cli("render", blend, "--frames", "10-40", "--method", "uniform", "--spp", "1",
+             "--out", str(tmp_path / "x_####.exr"))
+    assert r.returncode == 2 and "outside the scene's frame range" in r.stderr
+    assert not list(tmp_path.iterdir())
