@@ -971,32 +971,8 @@ def sample_map(buf: Buffers, result: MethodResult | None, budget: int, params=No
             prob = np.where(has_prob, carried, prob)
         state["prob"] = np.clip(prob, p_floor, 1.0).reshape(h, w)
     if remaining > 0:
-        rng = state["rng"]
-        p = np.clip(np.asarray(state["prob"], np.float64).ravel(), p_floor, 1.0)
-        total_p = float(p.sum())
-        while remaining > 0:
-            if cursor == 0 and remaining >= 2 * total_p:
-                x = -3.0 + np.sqrt(9.0 + remaining)
-                mm = int(np.floor(x * x / total_p))
-                if mm >= 2:
-                    draw = rng.binomial(mm, p)
-                    got = int(draw.sum())
-                    if got <= remaining:
-                        out += draw
-                        remaining -= got
-                        itr += mm
-                        continue
-            hit = rng.random(npx - cursor) <= p[cursor:]
-            cnt = int(np.count_nonzero(hit))
-            if cnt > remaining:
-                idx = cursor + np.flatnonzero(hit)[:remaining]
-                out[idx] += 1
-                cursor = int(idx[-1]) + 1
-                remaining = 0
-                break
-            out[cursor:] += hit
-            remaining -= cnt
-            itr, cursor = itr + 1, 0
+        itr, cursor = var.probability_phase(out, state["prob"], p_floor, remaining, itr, cursor,
+                                            state["rng"])
     state["itr"], state["cursor"] = itr, cursor
     state["tau"] = var.threshold(itr, params)
     return out.reshape(h, w)

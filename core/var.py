@@ -334,33 +334,43 @@ def sample_map(buf: Buffers, result: MethodResult | None, budget: int,
 
     # ---- probability phase (itr >= max_spp)
     if remaining > 0:
-        rng = state["rng"]
-        p = np.clip(np.asarray(state["prob"], np.float64).ravel(), p_floor, 1.0)
-        total_p = float(p.sum())
-        while remaining > 0:
-            if cursor == 0 and remaining >= 2 * total_p:
-                x = -3.0 + np.sqrt(9.0 + remaining)       # m S + 6 sqrt(m S) <= remaining
-                m = int(np.floor(x * x / total_p))
-                if m >= 2:
-                    draw = rng.binomial(m, p)
-                    got = int(draw.sum())
-                    if got <= remaining:
-                        out += draw
-                        remaining -= got
-                        itr += m
-                        continue
-            # one iteration (or the rest of one), scanline order
-            hit = rng.random(npx - cursor) <= p[cursor:]
-            cnt = int(np.count_nonzero(hit))
-            if cnt > remaining:
-                idx = cursor + np.flatnonzero(hit)[:remaining]
-                out[idx] += 1
-                cursor = int(idx[-1]) + 1
-                remaining = 0
-                break
-            out[cursor:] += hit
-            remaining -= cnt
-            itr, cursor = itr + 1, 0
+        itr, cursor = probability_phase(out, state["prob"], p_floor, remaining, itr, cursor, state["rng"])
     state["itr"], state["cursor"] = itr, cursor
     state["tau"] = threshold(itr, params)
     return out.reshape(h, w)
+
+
+def probability_phase(out, prob, p_floor, remaining, itr, cursor, rng):
+    """Hand out ``remaining`` samples of Algorithm 1's probability phase
+    (itr >= max_spp: a pixel is ready with probability ``prob``), in place into
+    ``out`` (flat int array), continuing at scanline ``cursor`` of iteration
+    ``itr``.  Many whole iterations at once are one Binomial draw (same law),
+    kept 6 sigma under what remains so the block never overruns; the last
+    iteration is cut at a scanline position.  Returns (itr, cursor)."""
+    npx = out.size
+    p = np.clip(np.asarray(prob, np.float64).ravel(), p_floor, 1.0)
+    total_p = float(p.sum())
+    while remaining > 0:
+        if cursor == 0 and remaining >= 2 * total_p:
+            x = -3.0 + np.sqrt(9.0 + remaining)       # m S + 6 sqrt(m S) <= remaining
+            m = int(np.floor(x * x / total_p))
+            if m >= 2:
+                draw = rng.binomial(m, p)
+                got = int(draw.sum())
+                if got <= remaining:
+                    out += draw
+                    remaining -= got
+                    itr += m
+                    continue
+        # one iteration (or the rest of one), scanline order
+        hit = rng.random(npx - cursor) <= p[cursor:]
+        cnt = int(np.count_nonzero(hit))
+        if cnt > remaining:
+            idx = cursor + np.flatnonzero(hit)[:remaining]
+            out[idx] += 1
+            cursor = int(idx[-1]) + 1
+            break
+        out[cursor:] += hit
+        remaining -= cnt
+        itr, cursor = itr + 1, 0
+    return itr, cursor
