@@ -34,13 +34,17 @@ class CYCLESADAPTIVE_PT_panel(bpy.types.Panel):
         if s.frame_range:
             col.prop(s, "temporal")
         col.prop(s, "overwrite")
-        cls = _param_classes.get(s.method)
-        group = getattr(s, f"params_{s.method}", None)
-        if cls is not None and group is not None and cls.__annotations__:
-            box = layout.box()
-            box.label(text=f"{s.method.upper()} parameters")
-            for name in cls.__annotations__:
-                box.prop(group, name)
+        groups = [s.method]
+        if s.frame_range and s.temporal != "none":
+            groups.append("reproject" if s.temporal == "reproject" else "temporal")
+        for key in groups:
+            cls = _param_classes.get(key)
+            group = getattr(s, f"params_{key}", None)
+            if cls is not None and group is not None and cls.__annotations__:
+                box = layout.box()
+                box.label(text=f"{key.upper()} parameters")
+                for name in cls.__annotations__:
+                    box.prop(group, name)
         if s.running:
             if hasattr(layout, "progress"):
                 layout.progress(factor=s.progress, text=s.status or "Rendering...")

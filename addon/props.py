@@ -103,7 +103,9 @@ class CYCLESADAPTIVE_PG_settings(bpy.types.PropertyGroup):
                            items=[("none", "Independent", "Every frame from scratch"),
                                   ("reproject", "Reproject", "Reuse the previous frame's samples where "
                                    "reprojection is valid (Schalk 2018): fewer samples per frame, "
-                                   "slight bias on moving highlights")],
+                                   "slight bias on moving highlights"),
+                                  ("lp", "LP temporal", "LP's regression over frames (Moon 2015 "
+                                   "Sec. 6; method LP): steadier animation, more memory")],
                            description="How frames of a range reuse earlier samples")
     overwrite: BoolProperty(name="Overwrite", default=False,
                             description="Replace an existing output file")
@@ -114,7 +116,7 @@ class CYCLESADAPTIVE_PG_settings(bpy.types.PropertyGroup):
 
 
 def register():
-    for m in methods.METHODS:
+    for m in list(methods.METHODS) + list(methods.STAGES):
         cls = _param_group(m)
         _param_classes[m] = cls
         bpy.utils.register_class(cls)

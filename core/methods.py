@@ -15,6 +15,9 @@ METHODS = {
     "rhf": "rhf",
 }
 
+#: parameter groups that are not methods (frame ranges): name -> core module
+STAGES = {"reproject": "reproject", "temporal": "temporal"}
+
 #: methods that reconstruct (usable by ``denoise``)
 DENOISERS = ("awr", "lp", "rhf")
 
@@ -27,5 +30,7 @@ def get(name: str):
 
 
 def param_fields(name: str):
-    """The dataclass fields of a method's Params (name, type, default, metadata)."""
+    """The dataclass fields of a method's (or a stage's) Params."""
+    if name in STAGES:
+        return list(fields(importlib.import_module("." + STAGES[name], __package__).Params))
     return list(fields(get(name).Params))

@@ -95,7 +95,7 @@ def build_parser(blender_command: bool = False) -> argparse.ArgumentParser:
     r.add_argument("--no-preview", action="store_true", help="do not write the PNG preview")
     r.add_argument("--json", action="store_true", help="print one JSON object as the last line")
     r.add_argument("--quiet", action="store_true", help="no progress lines")
-    add_method_params(r)
+    add_method_params(r, list(methods.METHODS) + list(methods.STAGES))
 
     d = sub.add_parser("denoise", help="reconstruct from a saved passes EXR")
     d.add_argument("passes", help="an output EXR of `render`, or a Blender multilayer EXR with "
@@ -231,6 +231,8 @@ def _render_frames(args, scene, vl, opts) -> int:
     frames = parse_frames(args.frames, scene)
     out = args.out or default_out(bpy_filepath(), args.method, "_####")
     job = FramesJob(scene, vl, opts, out, frames, reference_pattern=args.reference, temporal=args.temporal,
+                    reproject_params=method_params(args, "reproject"),
+                    temporal_params=method_params(args, "temporal"),
                     overwrite=args.overwrite, resume=args.resume, preview=not args.no_preview)
     interrupted = False
     try:

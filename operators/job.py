@@ -356,7 +356,8 @@ class FramesJob:
     MODES = ("none", "reproject", "lp")
 
     def __init__(self, scene, view_layer, options: Options, out_pattern: str, frames: list,
-                 reference_pattern: str | None = None, temporal: str = "none", **job_kw):
+                 reference_pattern: str | None = None, temporal: str = "none",
+                 reproject_params: dict | None = None, temporal_params: dict | None = None, **job_kw):
         if temporal not in self.MODES:
             raise JobError(f"unknown temporal mode {temporal!r} (choose {', '.join(self.MODES)})")
         if temporal == "lp" and options.method != "lp":
@@ -365,6 +366,10 @@ class FramesJob:
         self.options, self.frames = options, list(frames)
         self.out_pattern, self.reference_pattern = out_pattern, reference_pattern
         self.temporal, self.job_kw = temporal, job_kw
+        from ..core import reproject, temporal as temporal_mod
+        from ..core.method import params_from_dict
+        self.reproject_params = params_from_dict(reproject.Params, reproject_params)
+        self.temporal_params = params_from_dict(temporal_mod.Params, temporal_params)
         self.summaries: list = []
         self.job: RenderJob | None = None
         self._prev = None  # (buffers, camera dict, method state) of the previous frame
@@ -410,7 +415,7 @@ class FramesJob:
                 prob = np.full(prev_buf.shape, np.nan)
             extra = {"probability": np.asarray(prob, np.float64)}
         res = reproject.reproject(prev_buf, to_camera(prev_cam), run.buffers, to_camera(self.job.camera),
-                                  extra=extra)
+                                  params=self.reproject_params, extra=extra)
         if self.options.method == "var":
             run.method = _ReprojectVar()
             run.method_state["probability"] = res.extra["probability"]
@@ -428,8 +433,8 @@ class FramesJob:
             prev_buf, prev_cam, _ = self._prev
             center = reproject.backward_coordinates(to_camera(prev_cam), to_camera(self.job.camera),
                                                     run.buffers, prev_buf.shape)
-        res = temporal.step(self._temporal_state, run.buffers, frame=self.job.options.frame,
-                            static=static, center=center)
+        res = temporal.step(self._temporal_state, run.buffers, self.temporal_params,
+                            frame=self.job.options.frame, static=static, center=center)
         self._temporal_state = res.state
         out = res.method_result()
         out.info.update({f"temporal_{k}": v for k, v in res.info.items() if isinstance(v, (int, float))})

@@ -145,8 +145,11 @@ class CYCLESADAPTIVE_OT_render(bpy.types.Operator):
             out = s.output_path if "#" in s.output_path else \
                 s.output_path.replace(".exr", "_####.exr") if s.output_path.endswith(".exr") \
                 else s.output_path + "_####.exr"
+            from ..addon.props import method_params
             return FramesJob(scene, context.view_layer, _options(scene), out, frames,
-                             temporal=s.temporal, overwrite=s.overwrite)
+                             temporal=s.temporal, overwrite=s.overwrite,
+                             reproject_params=method_params(s, "reproject"),
+                             temporal_params=method_params(s, "temporal"))
         return RenderJob(scene, context.view_layer, _options(scene), s.output_path,
                          overwrite=s.overwrite)
 
