@@ -1,0 +1,464 @@
+"""Tests of the RHF method (core/rhf.py, Liu, Zheng, Yuan 2018)."""
+import dataclasses
+
+import numpy as np
+import pytest
+from hypothesis import given, settings, strategies as st
+from hypothesis.extra import numpy as hnp
+
+from core import rhf
+from core.buffers import Buffers
+from core.filters import box_mean, sobel_gradient
+from core.method import MethodResult, params_from_dict
+
+
+# ------------------------------------------------------------------ scenes
+def relmse(x, ref):
+    return float((((x - ref) ** 2) / (ref ** 2 + 0.01)).mean())
+
+
+def scene(h=48, w=48, seed=0, K=4, spp=4, noise=0.3, feat_noise=0.02):
+    """Albedo edge, a lit sphere (normals, depth), a colour-only shadow edge."""
+    rng = np.random.default_rng(seed)
+    yy, xx = np.mgrid[0:h, 0:w].astype(float)
+    alb = np.where((xx + 0.5 * yy) < 0.6 * w, 0.8, 0.3)[..., None] * np.array([1.0, 0.9, 0.7])
+    cy, cx, R = h * 0.6, w * 0.35, min(h, w) * 0.25
+    d2 = ((yy - cy) ** 2 + (xx - cx) ** 2) / R ** 2
+    ins = d2 < 1
+    nrm = np.zeros((h, w, 3))
+    nrm[..., 2] = 1.0
+    nrm[ins, 0] = (xx - cx)[ins] / R
+    nrm[ins, 1] = (yy - cy)[ins] / R
+    nrm[ins, 2] = np.sqrt(1 - d2[ins])
+    depth = (5 + yy / h * 3 - ins * 1.0)[..., None]
+    light = 0.3 + 0.7 * np.clip(nrm @ np.array([0.3, -0.5, 0.8]), 0, None)
+    truth = alb * (light * np.where(xx > 0.75 * w, 0.4, 1.0))[..., None]
+    subs, feats = [], []
+    for _ in range(K):
+        subs.append(truth + rng.normal(size=truth.shape) * noise * truth.mean(-1, keepdims=True)
+                    / np.sqrt(spp))
+        feats.append({"albedo": alb + rng.normal(size=alb.shape) * feat_noise,
+                      "normal": nrm + rng.normal(size=nrm.shape) * feat_noise,
+                      "depth": depth + rng.normal(size=depth.shape) * feat_noise / 2})
+    return truth, Buffers.from_subsets(subs, [spp] * K, feats)
+
+
+def flat_features(h, w):
+    return {"albedo": np.full((h, w, 3), 0.5), "normal": np.tile([0.0, 0.0, 1.0], (h, w, 1)),
+            "depth": np.full((h, w, 1), 2.0)}
+
+
+def buffers_from(truth_or_subsets, feats, spp=4):
+    subs = truth_or_subsets
+    return Buffers.from_subsets(subs, [spp] * len(subs), [feats] * len(subs))
+
+
+def run(buf, **kw):
+    p = dataclasses.replace(rhf.Params(), **kw)
+    feats, fvars = rhf._feature_arrays(buf)
+    return rhf.rhf_reconstruct(buf.color.mean, buf.variance_of_mean(), feats, fvars, buf.n, p)
+
+
+# ------------------------------------------------------------------ params
+def test_params_metadata_complete_and_typed():
+    for f in dataclasses.fields(rhf.Params):
+        assert isinstance(f.metadata.get("help"), str) and len(f.metadata["help"]) > 10, f.name
+        assert "min" in f.metadata and "max" in f.metadata, f.name
+        assert f.type in ("int", "float", "bool", "str", int, float, bool, str), f.name
+        default = f.default
+        if isinstance(default, (int, float)) and not isinstance(default, bool):
+            lo, hi = f.metadata["min"], f.metadata["max"]
+            assert (lo is None or default >= lo) and (hi is None or default <= hi), f.name
+
+
+def test_paper_defaults():
+    p = rhf.Params()
+    np.testing.assert_array_equal(rhf.parse_bandwidths(p.bandwidths), [1.0, 1.5, 2.0, 3.5, 4.0])
+    assert (p.iterations, p.patch_radius, p.edge_threshold) == (2, 3, 0.4)
+    assert (p.radius_small, p.radius_medium, p.radius_large) == (5, 10, 15)
+    assert (p.sigma_s, p.sigma_r, p.sigma_normal, p.sigma_albedo, p.sigma_depth) == \
+        (2.0, 1.0, 0.8, 0.25, 0.6)
+    assert (p.feature_k, p.guided_eps) == (0.25, 0.001)
+    assert rhf.PASSES == ("normal", "albedo", "depth")
+
+
+def test_params_from_dict_and_bad_bandwidths():
+    p = params_from_dict(rhf.Params, {"iterations": 3, "bandwidths": "2, 1", "unknown": 1})
+    assert p.iterations == 3
+    np.testing.assert_array_equal(rhf.parse_bandwidths(p.bandwidths), [1.0, 2.0])
+    with pytest.raises(ValueError):
+        params_from_dict(rhf.Params, {"iterations": 99})
+    for bad in ("", "1,-2", "a", "nan"):
+        with pytest.raises(ValueError):
+            rhf.parse_bandwidths(bad)
+
+
+def test_iteration_weights_eq12():
+    np.testing.assert_allclose(rhf.iteration_weights(3), [1 - 1 / 4, 1 - 1 / 9, 1 - 1 / 16])
+
+
+# --------------------------------------------------------------- hat matrix
+def dense_hat(X, w, ridge):
+    Lam = rhf.regularizer(np.array(w.sum()), X.shape[1], ridge)
+    W = np.diag(w)
+    return X @ np.linalg.inv(X.T @ W @ X + Lam) @ X.T @ W
+
+
+def test_hat_bias_variance_matches_dense_hat_matrix():
+    """Eq. 2 and Eq. 11 against an explicit n x n hat matrix."""
+    rng = np.random.default_rng(0)
+    n, P, K, B = 30, 10, 3, 2
+    X = np.concatenate([np.ones((B, n, 1)), rng.uniform(-1, 1, (B, n, P - 1))], axis=2)
+    w = rng.uniform(0, 1, (B, K, n))
+    Y = rng.normal(size=(B, n, 3))
+    yp = rng.normal(size=(B, n, 3))
+    v = rng.uniform(0, 2, (B, K, n))
+    pred, bias, var = rhf.hat_bias_variance(X, w, Y, yp, v, ridge=1e-3)
+    for b in range(B):
+        for k in range(K):
+            H = dense_hat(X[b], w[b, k], 1e-3)
+            np.testing.assert_allclose(pred[b, k], H @ Y[b], atol=1e-9)
+            np.testing.assert_allclose(bias[b, k], H @ yp[b] - yp[b], atol=1e-9)
+            np.testing.assert_allclose(var[b, k], (H ** 2) @ v[b, k], atol=1e-9)
+    # k-independent variance input broadcasts the same way
+    _, _, var2 = rhf.hat_bias_variance(X, w, Y, yp, v[:, 0], ridge=1e-3)
+    np.testing.assert_allclose(var2[:, 0], var[:, 0], atol=1e-12)
+
+
+def test_hat_matrix_exact_for_linear_data_and_idempotent():
+    rng = np.random.default_rng(1)
+    n = 25
+    X = np.concatenate([np.ones((1, n, 1)), rng.uniform(-1, 1, (1, n, 4))], axis=2)
+    beta = rng.normal(size=(5, 3))
+    Y = X[0] @ beta
+    w = rng.uniform(0.2, 1, (1, 1, n))
+    pred, bias, _ = rhf.hat_bias_variance(X, w, Y[None], Y[None], np.zeros((1, n)), ridge=1e-12)
+    np.testing.assert_allclose(pred[0, 0], Y, atol=1e-8)
+    np.testing.assert_allclose(bias[0, 0], 0, atol=1e-8)
+
+
+def test_hat_singular_and_degenerate_systems_stay_finite():
+    n = 16
+    X = np.zeros((2, n, 10))
+    X[..., 0] = 1.0                          # every feature constant: only the intercept
+    w = np.zeros((2, 1, n))                  # all weights zero -> uniform fallback
+    w[1, 0, 3] = 1.0                         # one pixel only
+    Y = np.arange(2 * n * 3, dtype=float).reshape(2, n, 3)
+    pred, bias, var = rhf.hat_bias_variance(X, w, Y, Y, np.ones((2, n)))
+    assert np.all(np.isfinite(pred)) and np.all(np.isfinite(var)) and np.all(np.isfinite(bias))
+    np.testing.assert_allclose(pred[0, 0], np.broadcast_to(Y[0].mean(0), (n, 3)), rtol=1e-6)
+    np.testing.assert_allclose(pred[1, 0], np.broadcast_to(Y[1, 3], (n, 3)), rtol=1e-6)
+
+
+def test_block_error_and_bandwidth_choice():
+    w = np.array([[1.0, 1.0, 0.0], [2.0, 2.0, 0.0]])
+    err = np.array([[1.0, 3.0, 100.0], [1.0, 3.0, 100.0]])
+    np.testing.assert_allclose(rhf.block_error(w, err), [2.0, 2.0])   # scale-free mean
+    assert rhf.block_error(np.zeros(3), np.ones(3)) == 0
+    np.testing.assert_array_equal(rhf.choose_bandwidth(np.array([[3.0, 1.0, 2.0],
+                                                                 [1.0, 1.0, 1.0]])), [1, 2])
+
+
+# ------------------------------------------------------------- pieces
+def test_feature_gradient_is_max_sobel_and_colour_guide_eq8():
+    rng = np.random.default_rng(2)
+    f = rng.normal(size=(9, 11, 7))
+    np.testing.assert_allclose(rhf.feature_gradient(f), sobel_gradient(f).max(axis=2))
+    y = rng.normal(size=(9, 11, 3))
+    const = np.ones((9, 11, 7))
+    # constant guides: each GUID(y, f_m) is the box mean of box means
+    r = rhf.Params().guided_radius
+    np.testing.assert_allclose(rhf.prefilter_color(y, const, rhf.Params()),
+                               box_mean(box_mean(y, r), r), atol=1e-12)
+
+
+def test_prefilter_features_denoises_and_keeps_edges():
+    rng = np.random.default_rng(3)
+    h, w = 32, 32
+    clean = np.zeros((h, w, 7))
+    clean[..., 2] = 1.0
+    clean[:, 16:, 3:6] = 0.8                       # albedo edge
+    clean[..., 6] = 0.5
+    noisy = clean + rng.normal(size=clean.shape) * 0.05
+    var = np.full(clean.shape, 0.05 ** 2)
+    out = rhf.prefilter_features(noisy, var, rhf.Params())
+    assert ((out - clean) ** 2).mean() < 0.2 * ((noisy - clean) ** 2).mean()
+    assert out[:, 18:, 3].mean() - out[:, :14, 3].mean() > 0.7     # edge kept
+
+
+def test_select_centers_cover_and_window_sizes():
+    p = rhf.Params()
+    for h, w in [(1, 1), (3, 5), (31, 37), (70, 45)]:
+        gra = np.zeros((h, w))
+        if h > 40:
+            gra[10, 10] = 1.0                      # one edge pixel in the first patch
+        cy, cx, cr, det = rhf.select_centers(gra, p)
+        cover = np.zeros((h, w), bool)
+        for a, b, r in zip(cy, cx, cr):
+            cover[max(0, a - r):a + r + 1, max(0, b - r):b + r + 1] = True
+        assert cover.all()
+        assert np.all((cy >= 0) & (cy < h) & (cx >= 0) & (cx < w))
+        if h > 40:
+            assert det[0, 0] and not det[1, 0]
+            assert 5 in cr[(cy == 15) & (cx == 15)]            # detailed patch: r_s
+            assert 15 in cr[(cy == 46) & (cx == 15)]           # smooth patch: r_l
+
+
+@pytest.mark.parametrize("r", [1, 2, 4])
+def test_guide_variance_matches_dense_operator(r):
+    """Var(M) = sum_j W_ij^2 Var_j for W = box_mean o box_mean (flat guide)."""
+    h, w = 7, 9
+    W = np.zeros((h * w, h * w))
+    for j in range(h * w):
+        e = np.zeros((h, w))
+        e.flat[j] = 1.0
+        W[:, j] = box_mean(box_mean(e, r), r).ravel()
+    v = np.random.default_rng(5).uniform(size=(h, w, 2))
+    ref = np.stack([(W ** 2) @ v[..., c].ravel() for c in range(2)], -1).reshape(h, w, 2)
+    np.testing.assert_allclose(rhf.guide_variance(v, r), ref, atol=1e-14)
+    np.testing.assert_array_equal(rhf.guide_variance(v, 0), v)
+
+
+def test_fill_centers_are_uncovered_pixels():
+    rng = np.random.default_rng(4)
+    unc = rng.uniform(size=(40, 50)) < 0.05
+    cy, cx = rhf._fill_centers(unc, 10)
+    assert unc[cy, cx].all()
+    cells = {(a // 21, b // 21) for a, b in zip(*np.nonzero(unc))}
+    assert len(cy) == len(cells)
+
+
+# -------------------------------------------------------------- behaviour
+def test_zero_variance_input_is_returned_unchanged():
+    truth, _ = scene(24, 24)
+    h, w = truth.shape[:2]
+    feats = flat_features(h, w)
+    buf = buffers_from([truth] * 3, feats)
+    res = rhf.reconstruct(buf)
+    np.testing.assert_array_equal(res.image, truth)
+    np.testing.assert_array_equal(res.error, 0)
+
+
+def test_error_drops_well_below_input():
+    truth, buf = scene(64, 64)
+    res = rhf.reconstruct(buf)
+    assert isinstance(res, MethodResult) and res.image.shape == (64, 64, 3)
+    mse = lambda x: float(((x - truth) ** 2).mean())
+    assert mse(res.image) < 0.25 * mse(buf.color.mean)
+    assert relmse(res.image, truth) < 0.8 * relmse(buf.color.mean, truth)
+    true_err = ((res.image - truth) ** 2).mean(-1).mean()
+    assert 0.2 < res.error.mean() / true_err < 5          # estimate in the right range
+
+
+def test_more_samples_less_error():
+    errs = []
+    for spp in (2, 32):
+        truth, buf = scene(32, 32, spp=spp, seed=5)
+        errs.append(relmse(rhf.reconstruct(buf).image, truth))
+    assert errs[1] < 0.5 * errs[0]
+
+
+def _edge_scene():
+    h, w = 40, 96
+    rng = np.random.default_rng(6)
+    truth = np.where(np.arange(w)[None, :, None] < 48, 0.2, 0.8) * np.ones((h, w, 3))
+    buf = buffers_from([truth + rng.normal(size=truth.shape) * 0.1 for _ in range(4)],
+                       flat_features(h, w))
+    return truth, buf
+
+
+def test_bandwidth_small_at_edges_flat_elsewhere():
+    """Colour-only edge (features flat).  With Eq. 11 as written, models
+    centred on the edge choose the smallest k and their block error grows
+    steeply with k; in the flat parts the error hardly depends on k (the
+    weights are ~1 for every k), so there the choice does not matter."""
+    truth, buf = _edge_scene()
+    res = run(buf)
+    on_edge = np.abs(res.cx - 47.5) <= 1.5
+    far = np.abs(res.cx - 47.5) > res.cr + 6
+    assert on_edge.any() and far.any()
+    assert res.k_opt[on_edge].max() <= 1.5 and np.median(res.k_opt[on_edge]) == 1.0
+    be = res.block_error
+    assert np.all(be[on_edge, -1] > 3 * be[on_edge, 0])
+    assert np.all(be[far, -1] < 1.1 * be[far, 0])
+    assert res.image[:, 52:, 0].mean() - res.image[:, :44, 0].mean() > 0.55   # edge kept
+    assert ((res.image - truth) ** 2).mean() < 0.1 * ((buf.color.mean - truth) ** 2).mean()
+
+
+def test_bias_noise_correction_gives_large_k_away_from_edges():
+    truth, buf = _edge_scene()
+    res = run(buf, bias_noise_correction=True)
+    on_edge = np.abs(res.cx - 47.5) <= 1.5
+    off = np.abs(res.cx - 47.5) >= 3
+    assert res.k_opt[on_edge].max() <= 1.5 and np.median(res.k_opt[on_edge]) == 1.0
+    assert res.k_opt[off].mean() > 2.0
+    assert ((res.image - truth) ** 2).mean() < 0.1 * ((buf.color.mean - truth) ** 2).mean()
+
+
+def test_pilot_noise_term_matches_dense_hat_matrix():
+    rng = np.random.default_rng(14)
+    n = 20
+    X = np.concatenate([np.ones((1, n, 1)), rng.uniform(-1, 1, (1, n, 3))], axis=2)
+    w = rng.uniform(0.1, 1, (1, 2, n))
+    u = rng.uniform(0, 1, (1, n))
+    v = rng.uniform(0, 1, (1, n))
+    Y = rng.normal(size=(1, n, 3))
+    *_, noise = rhf.hat_bias_variance(X, w, Y, Y, v, 1e-3, pilot_var=u)
+    for k in range(2):
+        H = dense_hat(X[0], w[0, k], 1e-3)
+        np.testing.assert_allclose(noise[0, k], ((H - np.eye(n)) ** 2) @ u[0], atol=1e-10)
+
+
+def test_iterations_and_options_run():
+    truth, buf = scene(48, 48, seed=7)
+    mse = lambda x: float(((x - truth) ** 2).mean())
+    base = mse(buf.color.mean)
+    for kw in ({"iterations": 1}, {"iterations": 3}, {"regress_guide": True},
+               {"regression_sigma_s": 2.0}, {"fill_rounds": 0, "coverage_weight": 0.0},
+               {"bandwidths": "2.0"}, {"patch_radius": 0, "feature_radius": 0,
+                                        "guided_radius": 0}, {"bias_noise_correction": True}):
+        res = run(buf, **kw)
+        assert np.all(np.isfinite(res.image)) and np.all(np.isfinite(res.error)), kw
+        assert mse(res.image) < 0.5 * base, kw
+
+
+# ------------------------------------------------------------- special input
+def test_noise_variance_estimate_is_robust_to_edges():
+    rng = np.random.default_rng(15)
+    img = np.where(np.arange(64)[None, :, None] < 32, 0.0, 5.0) * np.ones((64, 64, 2))
+    est = rhf.noise_variance_estimate(img + rng.normal(size=img.shape) * 0.1)
+    np.testing.assert_allclose(est, 0.01, rtol=0.15)
+    assert rhf.noise_variance_estimate(np.ones((2, 2, 3))).shape == (3,)
+
+
+def test_single_subset_uses_estimated_variance():
+    truth, _ = scene(48, 48)
+    rng = np.random.default_rng(8)
+    buf = buffers_from([truth + rng.normal(size=truth.shape) * 0.05], flat_features(48, 48))
+    assert np.all(np.isinf(buf.variance_of_mean()))
+    res = rhf.reconstruct(buf)
+    assert res.info["variance_filled_fraction"] == 1.0
+    assert np.all(np.isfinite(res.image)) and np.all(np.isfinite(res.error))
+    assert relmse(res.image, truth) < relmse(buf.color.mean, truth)
+
+
+def test_partial_variance_and_missing_pixels_filled():
+    truth, buf = scene(24, 24, seed=9)
+    buf.k[:5, :5] = 1                               # no variance here
+    buf.color.mean[10, 10] = np.nan                  # missing sample
+    buf.n[12, 3] = 0                                 # never rendered
+    res = rhf.reconstruct(buf)
+    assert res.info["missing_pixels"] == 2
+    assert np.all(np.isfinite(res.image)) and np.all(np.isfinite(res.error))
+    assert abs(res.image[10, 10] - truth[10, 10]).max() < 0.2
+
+
+def test_firefly_stays_finite_local_and_reduces_error():
+    """A 1e6 sample in one subset: its estimated variance is huge, so Eq. 5
+    treats it as noise; its energy is spread over nearby models (not kept as
+    a spike), which lowers the squared error, and pixels far away are untouched."""
+    h, w = 48, 64
+    rng = np.random.default_rng(10)
+    truth = np.full((h, w, 3), 0.5)
+    subs = [truth + rng.normal(size=truth.shape) * 0.05 for _ in range(4)]
+    subs[0][16, 16] = 1e6
+    buf = buffers_from(subs, flat_features(h, w))
+    res = rhf.reconstruct(buf)
+    assert np.all(np.isfinite(res.image)) and np.all(np.isfinite(res.error))
+    assert res.image[16, 16].max() < 0.2 * buf.color.mean[16, 16].max()
+    assert ((res.image - truth) ** 2).sum() < ((buf.color.mean - truth) ** 2).sum()
+    assert np.abs(res.image[:, 50:] - 0.5).max() < 0.1
+
+
+def test_empty_buffers_and_variance_helper():
+    buf = Buffers.empty(6, 7, rhf.PASSES)
+    res = rhf.reconstruct(buf)
+    assert np.all(np.isfinite(res.image)) and np.all(np.isfinite(res.error))
+    truth, buf = scene(16, 16, seed=16)
+    buf.k[:3] = 1
+    buf.n[5, 5] = 0
+    buf.color.m2[7, 7] = np.nan
+    np.testing.assert_array_equal(rhf._variance_of_mean(buf, buf.color), buf.variance_of_mean())
+
+
+def test_black_and_constant_images():
+    for val in (0.0, 0.37):
+        img = np.full((13, 17, 3), val)
+        res = rhf.reconstruct(buffers_from([img, img], flat_features(13, 17)))
+        np.testing.assert_array_equal(res.image, img)
+
+
+@pytest.mark.parametrize("h,w", [(1, 1), (1, 9), (3, 5), (7, 13), (31, 37)])
+def test_small_and_prime_sizes(h, w):
+    rng = np.random.default_rng(h * 100 + w)
+    truth = rng.uniform(0.2, 0.8, size=(h, w, 3))
+    feats = {"albedo": rng.uniform(size=(h, w, 3)), "normal": rng.normal(size=(h, w, 3)),
+             "depth": rng.uniform(1, 2, size=(h, w, 1))}
+    buf = buffers_from([truth + rng.normal(size=truth.shape) * 0.05 for _ in range(3)], feats)
+    res = rhf.reconstruct(buf)
+    assert res.image.shape == (h, w, 3) and res.error.shape == (h, w)
+    assert np.all(np.isfinite(res.image)) and np.all(res.error >= 0)
+
+
+def test_windows_larger_than_image_and_missing_feature_pass():
+    truth, buf = scene(12, 10, seed=11)
+    res = run(buf, radius_small=20, radius_medium=30, radius_large=40, feature_radius=16,
+              guided_radius=20)
+    assert np.all(np.isfinite(res.image))
+    del buf.features["depth"]
+    res2 = rhf.reconstruct(buf)
+    assert np.all(np.isfinite(res2.image))
+
+
+_hostile = st.sampled_from([0.0, 0.5, -1.0, 1e30, -1e30, np.nan, np.inf, -np.inf, 1e6, -5.0])
+
+
+@settings(max_examples=12, deadline=None)
+@given(hnp.arrays(np.float64, (2, 6, 7, 3), elements=_hostile),
+       hnp.arrays(np.float64, (6, 7, 3), elements=_hostile))
+def test_hostile_input_gives_finite_output(colors, albedo):
+    feats = flat_features(6, 7)
+    feats["albedo"] = albedo
+    buf = Buffers.from_subsets(list(colors), [2, 2], [feats, feats])
+    res = rhf.reconstruct(buf)
+    assert np.all(np.isfinite(res.image)) and np.all(np.isfinite(res.error))
+    assert np.all(res.error >= 0)
+    smap = rhf.sample_map(buf, res, 50, rhf.Params(), {})
+    assert smap.sum() == 50 and smap.min() >= 0
+
+
+@settings(max_examples=8, deadline=None)
+@given(st.integers(1, 9), st.integers(1, 9), st.integers(0, 2 ** 31))
+def test_random_shapes_and_noise_are_finite(h, w, seed):
+    rng = np.random.default_rng(seed)
+    truth = rng.uniform(-1, 2, size=(h, w, 3))
+    buf = buffers_from([truth + rng.normal(size=truth.shape) for _ in range(2)],
+                       flat_features(h, w))
+    res = rhf.reconstruct(buf)
+    assert np.all(np.isfinite(res.image)) and np.all(np.isfinite(res.error))
+
+
+# ------------------------------------------------------------- sampling
+def test_sample_map_budget_and_preference():
+    truth, buf = scene(32, 32, seed=12)
+    res = rhf.reconstruct(buf)
+    err = np.full((32, 32), 1e-6)
+    err[:, 16:] = 1e-2
+    res = MethodResult(res.image, err, res.info)
+    for budget in (0, 1, 1000, 4096):
+        m = rhf.sample_map(buf, res, budget, rhf.Params(), {})
+        assert m.dtype == np.int64 and m.shape == (32, 32)
+        assert m.sum() == budget and m.min() >= 0
+    m = rhf.sample_map(buf, res, 4096, rhf.Params(), {})
+    assert m[:, 16:].sum() > 10 * m[:, :16].sum()
+
+
+def test_denoise_matches_reconstruct():
+    truth, buf = scene(20, 20, seed=13)
+    feats, fvars = rhf._feature_arrays(buf)
+    fvars = {k: v() for k, v in fvars.items()}
+    a = rhf.reconstruct(buf)
+    b = rhf.denoise(buf.color.mean, buf.variance_of_mean(), feats, feature_vars=fvars, n=buf.n)
+    np.testing.assert_allclose(a.image, b.image)
+    c = rhf.denoise(buf.color.mean, buf.variance_of_mean(), feats)
+    assert np.all(np.isfinite(c.image))
