@@ -36,13 +36,14 @@ merging of equal tasks into bigger rectangles.
   sees a uniform ``next_index`` over its rectangle and :func:`assign_offsets`
   continues each pixel exactly, skipping no sample index.
 
-Default ``task_cost``: DESIGN.md measured ~0.02 s for a 32x32 border render at
-4 spp with the scene synced; the Cornell anchor (160x160, 16 spp, 0.84 s) gives
-~2 us per pixel-sample, so the 4096 pixel-samples of that render take ~0.008 s
-and the fixed cost of one task is ~0.012 s ~ 6000 pixel-samples on a light scene
-(less on heavier ones, where a pixel-sample costs more).  The default 4096 (one
-32x32 block at 4 spp) sits at the low end of that range so that the planner
-prefers accuracy of the map when in doubt; the loop may pass a measured value.
+Default ``task_cost``: measured with bpy 4.5 on this project's 2-core machine
+(``tools/task_cost.py``): a least-squares line through border renders of 8x8 to
+128x128 pixels at 1-8 spp gives a fixed cost of ~3 ms per render and ~3.2-3.8 us
+per pixel-sample on the sample scenes (cornell, glossy), i.e. one render costs
+as much as ~760-1040 pixel-samples.  The default is 1024; heavier scenes (more
+us per pixel-sample) make a task relatively cheaper, so the value errs towards
+fewer, larger renders only on light scenes.  (DESIGN.md's 0.02 s for a 32x32
+border render included scene sync.)  The loop's ``Options.task_cost`` overrides it.
 
 Border conversion: Blender computes the border in pixels as
 ``(int)(border_min_x * winx)`` in *single precision* with truncation (verified
@@ -59,7 +60,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 #: default fixed cost of one region render, in pixel-samples (see module docstring)
-DEFAULT_TASK_COST = 4096.0
+DEFAULT_TASK_COST = 1024.0
 
 _BIG = np.iinfo(np.int64).max // 4
 
@@ -290,7 +291,7 @@ def plan(counts, frame: int = 0, min_size: int = 8,
         Side of the smallest block (quadtree leaf, aligned to multiples of
         ``min_size`` from the top-left corner).  Smaller = closer to the map,
         more tasks.
-    task_cost : float, default 4096
+    task_cost : float, default 1024
         Fixed cost of one task in pixel-samples; the planner minimises
         ``task_cost * tasks + overshoot`` (see module docstring).  0 gives the
         exact plan at ``min_size`` resolution.
