@@ -118,3 +118,18 @@ def test_one_pixel_image_renders():
             pass
     assert run.buffers.shape == (1, 1)
     assert run.buffers.n.sum() == 4 and np.isfinite(run.reconstruct().image).all()
+
+
+def test_the_users_last_render_keeps_its_slot():
+    """Our renders go to a render slot of their own; the user's active slot
+    (holding their last render) is active again afterwards."""
+    scene = build_scene(16, 16)
+    scene.render.filepath = "/tmp/cycles-adaptive-user-render.png"
+    bpy.ops.render.render()  # the user's own render, into the active slot
+    rr = bpy.data.images["Render Result"]
+    rr.render_slots.active_index = 2
+    with CyclesExecutor(scene, bpy.context.view_layer, (), seed=1) as ex:
+        assert rr.render_slots.active.name == "Cycles Adaptive"
+        _render_full(ex, 1)
+    assert rr.render_slots.active_index == 2
+    assert scene.render.filepath == "/tmp/cycles-adaptive-user-render.png"
