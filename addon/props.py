@@ -90,6 +90,10 @@ class CYCLESADAPTIVE_PG_settings(bpy.types.PropertyGroup):
     iterations: IntProperty(name="Iterations", default=4, min=1, max=64,
                             description="Adaptive iterations after the first pass. More: sample map "
                                         "follows the error more closely, more per-render overhead")
+    max_pixel_share: FloatProperty(name="Max Pixel Share", default=2.0, min=0.0, soft_max=64.0,
+                                   description="Most samples one pixel may get in an iteration, as a "
+                                               "multiple of the iteration's mean (0: no cap). Lower "
+                                               "spreads samples evenly, higher follows the map's peaks")
     seed: IntProperty(name="Seed", default=0, min=0, description="Cycles seed of the run")
     max_seconds: FloatProperty(name="Time Limit", default=0.0, min=0.0, subtype="TIME_ABSOLUTE",
                                description="Stop sampling after this many seconds (0: no limit)")

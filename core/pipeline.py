@@ -65,6 +65,13 @@ class Options:
     min_task_size: int = 8
     #: fixed cost of one region render in pixel-samples (see regions.plan)
     task_cost: float = regions.DEFAULT_TASK_COST
+    #: most samples one pixel may get in one iteration, as a multiple of the
+    #: iteration's mean per pixel (0: no cap).  Our safeguard, not in the papers:
+    #: per-pixel error estimates from a few sample subsets are heavy-tailed
+    #: (fireflies, near-black pixels under relative error), and a map
+    #: proportional to them pours most of an iteration into a few pixels; the
+    #: cap spreads the excess over the other pixels in proportion to the map.
+    max_pixel_share: float = 2.0
     max_seconds: float = 0.0  # 0: no time budget
     params: dict = field(default_factory=dict)
     features: tuple = ()      # extra passes to read beyond the method's own
@@ -214,6 +221,17 @@ class AdaptiveRun:
                            s + 1, self.subsets)
         self.next_index[:] = offset
 
+    def _capped(self, counts: np.ndarray) -> np.ndarray:
+        """Apply ``Options.max_pixel_share`` to a map (same total when possible)."""
+        share = self.options.max_pixel_share
+        total = int(counts.sum())
+        if share <= 0 or total <= 0:
+            return counts
+        cap = max(1, int(np.ceil(share * total / counts.size)))
+        if counts.max() <= cap:
+            return counts
+        return allocate(counts.astype(np.float64), total, cap=np.full(counts.shape, cap, np.int64))
+
     def _render_task(self, task) -> None:
         t0 = time.perf_counter()
         color, feats = self.executor.render(task)
@@ -248,8 +266,8 @@ class AdaptiveRun:
         best = None
         for _ in range(6):
             state = copy.deepcopy(self.method_state)
-            counts = np.asarray(self.method.sample_map(self.buffers, result, max(ask, 0), self.params,
-                                                       state), np.int64)
+            counts = self._capped(np.asarray(self.method.sample_map(self.buffers, result, max(ask, 0),
+                                                                    self.params, state), np.int64))
             plan = regions.plan(counts, frame=self.options.frame, min_size=self.options.min_task_size,
                                 task_cost=self.options.task_cost)
             cov = int(plan.covered.sum())

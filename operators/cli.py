@@ -87,6 +87,9 @@ def build_parser(blender_command: bool = False) -> argparse.ArgumentParser:
                    "seconds (0: no limit)")
     r.add_argument("--min-task-size", type=int, default=8, help="smallest region render side in "
                    "pixels; smaller follows the sample map more closely, more renders")
+    r.add_argument("--max-pixel-share", type=float, default=2.0, help="most samples a pixel may get "
+                   "in one iteration, as a multiple of the iteration's mean (0: no cap); lower spreads "
+                   "samples more evenly, higher follows the method's map to its peaks")
     r.add_argument("--task-cost", type=float, default=None, help="fixed cost of one region render "
                    "in pixel-samples; higher merges more regions (fewer renders, samples less "
                    "adaptive)")
@@ -197,6 +200,7 @@ def cmd_render(args, blender_command=False) -> int:
     opts = Options(method=args.method, spp=args.spp, initial_spp=args.initial_spp,
                    subsets=args.subsets, iterations=args.iterations, frame=frame, seed=args.seed,
                    max_seconds=args.max_seconds, min_task_size=args.min_task_size,
+                   max_pixel_share=args.max_pixel_share,
                    params=method_params(args, args.method))
     if args.task_cost is not None:
         if args.task_cost < 0:

@@ -23,7 +23,8 @@ def _options(scene) -> Options:
     s = scene.cycles_adaptive
     return Options(method=s.method, spp=s.spp, initial_spp=s.initial_spp, subsets=s.subsets,
                    iterations=s.iterations, frame=scene.frame_current, seed=s.seed,
-                   max_seconds=s.max_seconds, params=method_params(s, s.method))
+                   max_seconds=s.max_seconds, max_pixel_share=s.max_pixel_share,
+                   params=method_params(s, s.method))
 
 
 def _show(job):
