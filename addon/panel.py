@@ -29,6 +29,7 @@ class CYCLESADAPTIVE_PT_panel(bpy.types.Panel):
         col.prop(s, "iterations")
         col.prop(s, "max_seconds")
         col.prop(s, "max_pixel_share")
+        col.prop(s, "guard_z")
         col.prop(s, "seed")
         col.prop(s, "output_path")
         col.prop(s, "frame_range")

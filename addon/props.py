@@ -94,6 +94,10 @@ class CYCLESADAPTIVE_PG_settings(bpy.types.PropertyGroup):
                                    description="Most samples one pixel may get in an iteration, as a "
                                                "multiple of the iteration's mean (0: no cap). Lower "
                                                "spreads samples evenly, higher follows the map's peaks")
+    guard_z: FloatProperty(name="Consistency Guard", default=3.0, min=0.0, soft_max=10.0,
+                           description="Pixels whose reconstruction is more than this many standard "
+                                       "errors from their own samples keep their sample mean (0: off). "
+                                       "Lower trusts the reconstruction less")
     seed: IntProperty(name="Seed", default=0, min=0, description="Cycles seed of the run")
     max_seconds: FloatProperty(name="Time Limit", default=0.0, min=0.0, subtype="TIME_ABSOLUTE",
                                description="Stop sampling after this many seconds (0: no limit)")

@@ -108,3 +108,38 @@ def params_from_dict(cls, values: dict | None):
                                      f"outside [{lo}, {hi}]")
             kwargs[f.name] = v
     return cls(**kwargs)
+
+
+def consistency_guard(result: MethodResult, buf, z: float = 5.0) -> MethodResult:
+    """Reject reconstructed pixels that contradict their own samples.
+
+    A pixel whose reconstruction differs from its own sample mean by more than
+    ``z`` standard errors of that mean in some channel (``|x - mean| > z *
+    sqrt(var_of_mean)``) is replaced by its sample mean, and its estimated
+    error by its variance of the mean.  This is our safeguard, not part of any
+    of the papers: local regressions and wavelet thresholds spread a bright
+    highlight or firefly into neighbours whose own samples say otherwise (LP on
+    the glossy scene put 1.2 on pixels whose 23 samples gave 0.137, reference
+    0.138).  Pixels without a variance estimate (k < 2) or with non-finite
+    input are left to the method.  Zero-variance pixels must come back
+    unchanged, which the guard enforces too.  ``z <= 0`` disables it.
+
+    Returns a new MethodResult; ``info['guard_fraction']`` is the share of
+    pixels replaced.
+    """
+    if z is None or z <= 0:
+        return result
+    mean = buf.color.mean
+    var = buf.variance_of_mean()
+    known = buf.has_variance[..., None] & np.isfinite(var) & np.isfinite(mean)
+    sd = np.sqrt(np.where(known, np.maximum(var, 0.0), 0.0))
+    with np.errstate(invalid="ignore"):
+        off = np.abs(result.image - mean) > z * sd
+    bad = (off & known).any(axis=-1) & known.all(axis=-1)
+    if not bad.any():
+        info = dict(result.info, guard_fraction=0.0)
+        return MethodResult(result.image, result.error, info)
+    image = np.where(bad[..., None], mean, result.image)
+    err = np.where(bad, np.where(known, var, 0.0).mean(axis=-1), result.error)
+    info = dict(result.info, guard_fraction=float(bad.mean()))
+    return MethodResult(image, err, info)

@@ -40,7 +40,7 @@ import numpy as np
 
 from . import methods, regions
 from .buffers import Buffers, Stat
-from .method import allocate, params_from_dict
+from .method import allocate, consistency_guard, params_from_dict
 
 CHECKPOINT_VERSION = 1
 TOP_UP = 3
@@ -72,6 +72,10 @@ class Options:
     #: proportional to them pours most of an iteration into a few pixels; the
     #: cap spreads the excess over the other pixels in proportion to the map.
     max_pixel_share: float = 2.0
+    #: final image: pixels whose reconstruction is more than guard_z standard
+    #: errors from their own sample mean fall back to it (core.method.
+    #: consistency_guard; our safeguard, not in the papers); 0 disables
+    guard_z: float = 3.0
     max_seconds: float = 0.0  # 0: no time budget
     params: dict = field(default_factory=dict)
     features: tuple = ()      # extra passes to read beyond the method's own
@@ -301,9 +305,15 @@ class AdaptiveRun:
         return tasks, covered, counts
 
     # ----------------------------------------------------------------- result
-    def reconstruct(self):
+    def reconstruct(self, reconstructor=None):
+        """Final reconstruction (the method's, or ``reconstructor(run)``),
+        through the consistency guard of ``Options.guard_z``."""
         t0 = time.perf_counter()
-        result = self.method.reconstruct(self.buffers, self.params)
+        if reconstructor is None:
+            result = self.method.reconstruct(self.buffers, self.params)
+        else:
+            result = reconstructor(self)
+        result = consistency_guard(result, self.buffers, self.options.guard_z)
         self.timing.reconstruct += time.perf_counter() - t0
         return result
 

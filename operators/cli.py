@@ -90,6 +90,9 @@ def build_parser(blender_command: bool = False) -> argparse.ArgumentParser:
     r.add_argument("--max-pixel-share", type=float, default=2.0, help="most samples a pixel may get "
                    "in one iteration, as a multiple of the iteration's mean (0: no cap); lower spreads "
                    "samples more evenly, higher follows the method's map to its peaks")
+    r.add_argument("--guard-z", type=float, default=3.0, help="final image: a pixel more than this "
+                   "many standard errors from its own sample mean falls back to it (0: off); lower "
+                   "trusts the reconstruction less")
     r.add_argument("--task-cost", type=float, default=None, help="fixed cost of one region render "
                    "in pixel-samples; higher merges more regions (fewer renders, samples less "
                    "adaptive)")
@@ -108,6 +111,8 @@ def build_parser(blender_command: bool = False) -> argparse.ArgumentParser:
     d.add_argument("--reference")
     d.add_argument("--overwrite", action="store_true")
     d.add_argument("--json", action="store_true")
+    d.add_argument("--guard-z", type=float, default=3.0, help="pixels more than this many standard "
+                   "errors from their own sample mean fall back to it (0: off)")
     add_method_params(d, methods.DENOISERS)
 
     b = sub.add_parser("bench", help="measure the speed/accuracy trade against uniform, "
@@ -200,7 +205,7 @@ def cmd_render(args, blender_command=False) -> int:
     opts = Options(method=args.method, spp=args.spp, initial_spp=args.initial_spp,
                    subsets=args.subsets, iterations=args.iterations, frame=frame, seed=args.seed,
                    max_seconds=args.max_seconds, min_task_size=args.min_task_size,
-                   max_pixel_share=args.max_pixel_share,
+                   max_pixel_share=args.max_pixel_share, guard_z=args.guard_z,
                    params=method_params(args, args.method))
     if args.task_cost is not None:
         if args.task_cost < 0:
@@ -262,7 +267,7 @@ def cmd_denoise(args) -> int:
     import numpy as np
     from ..core import io as imageio
     from ..core import metrics
-    from ..core.method import params_from_dict
+    from ..core.method import consistency_guard, params_from_dict
     from .job import (JobError, buffers_from_passes, buffers_to_passes, load_reference,
                       peak_rss_mb, preview_path)
     t0 = time.perf_counter()
@@ -278,7 +283,7 @@ def cmd_denoise(args) -> int:
     ref = load_reference(args.reference, buf.shape)
     params = params_from_dict(method.Params, method_params(args, args.method))
     t1 = time.perf_counter()
-    result = method.reconstruct(buf, params)
+    result = consistency_guard(method.reconstruct(buf, params), buf, args.guard_z)
     t_rec = time.perf_counter() - t1
     image = np.where(np.isfinite(result.image), result.image, 0.0)
     error = np.where(np.isfinite(result.error), result.error, 0.0)

@@ -173,6 +173,7 @@ class RenderJob:
         self.reconstructor = None  # callable(run) -> MethodResult replacing run.reconstruct()
         self.camera = None         # camera matrices of the rendered frame
         self.reproject_info: dict = {}
+        self.result = None         # the final MethodResult, once finish() ran
         self.t0 = time.perf_counter()
         self.summary: dict | None = None
 
@@ -198,12 +199,8 @@ class RenderJob:
         run = self.run
         if run is None or run.buffers is None:
             raise JobError("nothing was rendered")
-        if self.reconstructor is not None:
-            t0 = time.perf_counter()
-            result = self.reconstructor(run)
-            run.timing.reconstruct += time.perf_counter() - t0
-        else:
-            result = run.reconstruct()
+        result = run.reconstruct(self.reconstructor)
+        self.result = result
         image = np.where(np.isfinite(result.image), result.image, 0.0)
         error = np.where(np.isfinite(result.error), result.error, 0.0)
         t_write = time.perf_counter()

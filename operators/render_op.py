@@ -24,15 +24,17 @@ def _options(scene) -> Options:
     return Options(method=s.method, spp=s.spp, initial_spp=s.initial_spp, subsets=s.subsets,
                    iterations=s.iterations, frame=scene.frame_current, seed=s.seed,
                    max_seconds=s.max_seconds, max_pixel_share=s.max_pixel_share,
+                   guard_z=s.guard_z,
                    params=method_params(s, s.method))
 
 
 def _show(job):
     from ..addon.display import show_result
     run = job.run
-    if run is None or run.buffers is None:
+    inner = getattr(job, "job", job)  # a FramesJob shows its last frame
+    res = getattr(inner, "result", None)
+    if run is None or run.buffers is None or res is None:
         return
-    res = run.method.reconstruct(run.buffers, run.params)
     alpha = run.buffers.features["alpha"].mean if "alpha" in run.buffers.features else None
     show_result(res.image, run.buffers.n, res.error, alpha)
 
