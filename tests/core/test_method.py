@@ -44,3 +44,9 @@ def test_allocate_sums_to_budget_and_respects_cap():
     out = allocate(w, 40, cap=np.full((2, 2), 15))
     assert out.sum() == 40 and out.max() <= 15 and out[0, 0] == 15 and out[1, 1] == 0
     assert allocate(np.full((2, 2), np.nan), 8).sum() == 8
+
+
+def test_t_quantile_matches_student_t_tables():
+    from core.method import t_quantile
+    got = t_quantile(1.959964, np.array([1, 3, 10, 1000]))  # two-sided 95 %
+    np.testing.assert_allclose(got, [12.706, 3.182, 2.228, 1.96], rtol=5e-3)
