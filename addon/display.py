@@ -5,6 +5,8 @@ from __future__ import annotations
 import bpy
 import numpy as np
 
+from ..core.buffers import LUMA
+
 RESULT, SAMPLES, ERROR = "Cycles Adaptive Result", "Cycles Adaptive Samples", "Cycles Adaptive Error"
 
 
@@ -39,7 +41,7 @@ def show_result(image: np.ndarray, samples: np.ndarray, error: np.ndarray, alpha
     res = set_float_image(RESULT, rgba)
     smax = max(float(np.max(samples)), 1.0)
     set_float_image(SAMPLES, (samples / smax)[:, :, None])
-    lum = image @ np.array([0.2126, 0.7152, 0.0722])
+    lum = image @ LUMA
     rel = np.sqrt(np.maximum(error, 0.0)) / (np.abs(lum) + 0.01)
     p99 = float(np.percentile(rel, 99)) if rel.size else 1.0
     set_float_image(ERROR, (np.clip(rel / max(p99, 1e-12), 0, 1))[:, :, None])

@@ -203,13 +203,6 @@ class Buffers:
     def feature_variance(self, name: str) -> np.ndarray:
         return self.variance_of_mean(self.features[name])
 
-    def crop(self, region) -> "Buffers":
-        sl = _region_slice(region, self.shape)
-        return Buffers(self.n[sl].copy(), self.k[sl].copy(),
-                       Stat(self.color.mean[sl].copy(), self.color.m2[sl].copy()),
-                       {k: Stat(v.mean[sl].copy(), v.m2[sl].copy())
-                        for k, v in self.features.items()})
-
 
 def _region_slice(region, shape):
     if region is None:
@@ -234,9 +227,3 @@ def _chan_update(stat: Stat, sl, mean_b, wb, cross, m2_b=None):
 def luminance(rgb: np.ndarray) -> np.ndarray:
     """(..., 3) -> (...) Rec. 709 luminance."""
     return rgb @ LUMA
-
-
-def sanitize(x: np.ndarray, fill: float = 0.0) -> np.ndarray:
-    """Replace NaN/Inf by ``fill`` (float64 copy)."""
-    x = np.asarray(x, np.float64)
-    return np.where(np.isfinite(x), x, fill)

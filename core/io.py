@@ -130,15 +130,6 @@ def write_layers(path: str, passes: dict, layer: str = "ViewLayer", attributes: 
     _atomic_write(path, spec, data)
 
 
-def write_png(path: str, rgb_display: np.ndarray) -> None:
-    """Write an 8-bit PNG atomically from display-referred (H, W, 3|4) values in
-    [0, 1] (the caller applies the view transform)."""
-    arr = np.clip(np.nan_to_num(np.asarray(rgb_display, np.float64)), 0.0, 1.0)
-    arr = np.ascontiguousarray((arr * 255.0 + 0.5).astype(np.uint8))
-    spec = oiio.ImageSpec(arr.shape[1], arr.shape[0], arr.shape[2], "uint8")
-    _atomic_write(path, spec, arr)
-
-
 def check_writable(path: str, overwrite: bool) -> None:
     """Raise ImageFileError unless ``path`` can be created (or replaced when
     ``overwrite``): existing file, missing or unwritable folder."""

@@ -23,6 +23,8 @@ from dataclasses import dataclass, field, fields
 
 import numpy as np
 
+from .buffers import LUMA
+
 
 @dataclass
 class MethodResult:
@@ -42,7 +44,7 @@ def relative_error(error: np.ndarray, image: np.ndarray, eps: float = 1e-3) -> n
 
     error : (H, W), image : (H, W, 3) -> (H, W) finite, >= 0.
     """
-    lum = np.asarray(image, np.float64) @ np.array([0.2126, 0.7152, 0.0722])
+    lum = np.asarray(image, np.float64) @ LUMA
     lum = np.where(np.isfinite(lum), lum, 0.0)
     e = np.where(np.isfinite(error), np.maximum(error, 0.0), 0.0)
     return e / (lum * lum + eps)
