@@ -333,9 +333,7 @@ def write_preview(scene, rgba: np.ndarray, path: str) -> None:
     px[:, :, :rgba.shape[2]] = np.nan_to_num(rgba[:, :, :4], nan=0.0, posinf=0.0, neginf=0.0)
     img = bpy.data.images.new("cycles_adaptive_preview", w, h, alpha=True, float_buffer=True)
     guard = SettingsGuard()
-    folder = os.path.dirname(os.path.abspath(path)) or "."
-    fd, tmp = tempfile.mkstemp(prefix=".tmp-", suffix=".png", dir=folder)
-    os.close(fd)
+    tmp = imageio.temp_beside(path, ".png")
     try:
         img.pixels.foreach_set(px[::-1].ravel())  # Blender rows run bottom to top
         st = scene.render.image_settings

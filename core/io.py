@@ -144,11 +144,20 @@ def check_writable(path: str, overwrite: bool) -> None:
         raise ImageFileError(f"{folder}: output folder is not writable")
 
 
-def _atomic_write(path: str, spec, data) -> None:
+def temp_beside(path: str, suffix: str) -> str:
+    """A new temporary file in ``path``'s folder (for write-then-rename), with
+    the permissions a plain ``open(path, 'w')`` would give (mkstemp's are 0600)."""
     folder = os.path.dirname(os.path.abspath(path)) or "."
-    ext = os.path.splitext(path)[1] or ".exr"
-    fd, tmp = tempfile.mkstemp(prefix=".tmp-", suffix=ext, dir=folder)
+    fd, tmp = tempfile.mkstemp(prefix=".tmp-", suffix=suffix, dir=folder)
     os.close(fd)
+    umask = os.umask(0)
+    os.umask(umask)
+    os.chmod(tmp, 0o666 & ~umask)
+    return tmp
+
+
+def _atomic_write(path: str, spec, data) -> None:
+    tmp = temp_beside(path, os.path.splitext(path)[1] or ".exr")
     try:
         out = oiio.ImageOutput.create(tmp)
         if out is None:

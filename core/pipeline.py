@@ -32,7 +32,6 @@ import copy
 import json
 import os
 import pickle
-import tempfile
 import time
 from dataclasses import asdict, dataclass, field
 
@@ -40,6 +39,7 @@ import numpy as np
 
 from . import methods, regions
 from .buffers import Buffers, Stat
+from .io import temp_beside
 from .method import allocate, consistency_guard, params_from_dict
 
 CHECKPOINT_VERSION = 1
@@ -333,9 +333,7 @@ class AdaptiveRun:
                 "history": self.history}
         arrays["meta"] = np.frombuffer(json.dumps(meta).encode(), np.uint8)
         arrays["method_state"] = np.frombuffer(pickle.dumps(self.method_state), np.uint8)
-        folder = os.path.dirname(os.path.abspath(self.checkpoint_path))
-        fd, tmp = tempfile.mkstemp(prefix=".tmp-ckpt-", suffix=".npz", dir=folder)
-        os.close(fd)
+        tmp = temp_beside(self.checkpoint_path, ".npz")
         try:
             np.savez(tmp, **arrays)
             os.replace(tmp, self.checkpoint_path)

@@ -60,3 +60,11 @@ def test_check_writable(tmp_path):
     imageio.check_writable(str(p), overwrite=True)
     with pytest.raises(imageio.ImageFileError, match="does not exist"):
         imageio.check_writable(str(tmp_path / "nope" / "f.exr"), overwrite=False)
+
+
+def test_written_files_get_ordinary_permissions(tmp_path):
+    path = str(tmp_path / "p.exr")
+    imageio.write_layers(path, {"Combined": np.zeros((2, 2, 4))})
+    umask = os.umask(0)
+    os.umask(umask)
+    assert os.stat(path).st_mode & 0o777 == 0o666 & ~umask
