@@ -138,7 +138,6 @@ class AdaptiveRun:
         self.timing = Timing()
         self.tasks_rendered = 0
         self.overshoot = 0
-        self.done = False
         self.checkpoint_path = checkpoint
         self.prior = prior
         self.reused = np.zeros((self.height, self.width))  # samples merged from ``prior``
@@ -206,7 +205,6 @@ class AdaptiveRun:
             self._save_checkpoint()
             yield Progress("checkpoint", self.iteration, self._fraction(),
                            f"iteration {self.iteration} done, {self.samples_rendered / self.pixels:.2f} spp")
-        self.done = True
         yield Progress("done", self.iteration, self._fraction(), "sampling done")
 
     def _initial_pass(self):
