@@ -17,29 +17,44 @@ Functional variance from sample subsets (Eq. 5, 6, 10)
 ------------------------------------------------------
 The paper keeps each pixel's min and max sample ``I_min, I_max``; Cycles gives
 neither, only ``K`` subset means, from which ``Buffers`` gives the per-sample
-variance ``s^2 = M2 / (k - 1)`` and the count ``N``.  We replace the range by its
-expectation for ``N`` samples of a normal distribution with that variance::
+variance ``s^2 = M2 / (k - 1)`` and the count ``N``.
 
-    I_max - I_min  ~  d2(N) s,      d2(N) = E[range of N standard normal samples]
-
-(``d2`` is the expected range of ``N`` standard normal samples, the quality
-control constant: exact by quadrature up to ``N = 64``, Blom's approximation
-above; ``N < 2`` uses ``d2(2)``).  Hence
-
-* Eq. 10 (reconstruction): ``sigma^2(F) = (I_max - I_min)^2 = d2(N)^2 s^2`` and,
-  by Eq. 6, ``sigma^2(B) = d2(N)^2 s^2 / N = d2(N)^2 Var(mean)``;
-* Eq. 5 (sampler): with ``I_max + I_min = 2 mu`` (symmetric spread about the pixel
-  mean ``mu``) the squared Mitchell contrast is
+* Eq. 5 (sampler): the range is replaced by its expectation for ``N`` samples
+  of a normal distribution with that variance, ``I_max - I_min ~ d2(N) s``
+  (``d2`` is the expected range of ``N`` standard normal samples, the quality
+  control constant: exact by quadrature up to ``N = 64``, Blom's approximation
+  above; ``N < 2`` uses ``d2(2)``).  With ``I_max + I_min = 2 mu`` (symmetric
+  spread about the pixel mean ``mu``) the squared Mitchell contrast is
   ``min(1, d2(N)^2 s^2 / (2 mu)^2)`` per colour channel, and the pixel takes
   the largest of R, G, B (Mitchell tests each channel and refines when any one
   exceeds its threshold).  The cap 1 is the contrast of samples that reach 0
   (non-negative radiance has ``I_min >= 0``, so the contrast cannot exceed 1).
-  ``s = 0`` gives 0 and ``mu = 0, s > 0`` gives 1.
-
-Like the paper's range, this grows slowly with ``N`` (the range of more samples
-is wider), so it keeps the paper's balance between thresholds and noise: with
-``c_s = 1`` the level-1 threshold is ~1.5 (N = 4) to ~2.5 (N = 16) noise
-standard deviations and halves every two levels.
+  ``s = 0`` gives 0 and ``mu = 0, s > 0`` gives 1.  Eq. 6 then divides by
+  ``N``.  (The sampler only ranks coefficients against each other; using
+  ``s^2`` there instead changed relMSE by < 3 % on the sample scenes.)
+* Eq. 10 (reconstruction), ``recon_variance``: the paper calls the range "an
+  upper bound estimate of the pixel variance" and uses it because a min and a
+  max are all its renderer keeps; "there are many methods to approximate the
+  functional variance from a set of samples".  Our subsets give an estimate of
+  the functional variance itself, so by default (``"sample"``)
+  ``sigma^2(F) = s^2`` and by Eq. 6 ``sigma^2(B) = s^2 / N = Var(mean)``: the
+  threshold ``c_s Delta`` is then ``c_s`` standard deviations of each
+  coefficient, the "range of statistically valid values" of Sec. 4.2 read
+  literally.  ``"range"`` is the paper's bound, ``sigma^2(F) = d2(N)^2 s^2``
+  (threshold ~2 (N = 4) to ~3.5 (N = 16) standard deviations, growing with
+  ``N``).  Why the default is not the bound: measured on the six sample scenes
+  at 16 spp (``./cycles-adaptive render ... --method awr --awr-recon-variance
+  range``), the bound erases texture and defocus detail and loses to plain
+  uniform sampling on 5 of 6 scenes by 2-5x relMSE (dof 4.5e-2 vs uniform
+  1.6e-2); the sample estimate beats uniform on 5 of 6 (cornell 1.1e-2 vs
+  3.5e-2, soft_shadows 9.1e-3 vs 7.3e-3 is the exception: a pixel-scale
+  checkerboard).  The bound is still the stronger smoother of flat noise: a
+  constant image plus noise comes back 6x less noisy with it, 1.7x with the
+  sample estimate (tests/core/test_awr.py).  Note that Cycles' sample
+  subsets are consecutive blocks of one quasi-Monte Carlo sequence, so ``s^2``
+  already overestimates the error of the merged mean (true/estimated 0.5-0.8
+  on the sample scenes): the default threshold is ~1.2-1.4 true standard
+  deviations.
 
 Variance unknown (``k < 2``, variance ``+inf``) or non-finite: the per-pixel
 variance of the mean is replaced by the noise level of the image itself,
@@ -57,7 +72,7 @@ Stein's unbiased risk estimate of each soft-thresholded coefficient,
 ``sigma_w^2 - 2 sigma_w^2 [|w| <= t] + min(w^2, t^2)`` with ``t = c_s Delta`` and
 ``sigma_w^2`` the coefficient's actual variance ``<Var(mean), Psi^2>`` (natural
 squared filters; obtained from ``Delta^2`` by dividing out the renormalisation
-and ``d2(N)^2``, the latter as its ``Psi^2``-weighted mean over the support when
+and, with ``recon_variance = "range"``, ``d2(N)^2``, the latter as its ``Psi^2``-weighted mean over the support when
 ``N`` varies, which is exact where ``N`` is locally constant and saves one
 transform per channel), plus the variance of the untouched coarse coefficients,
 propagated to pixels by a synthesis with squared synthesis filters (coefficient
@@ -175,6 +190,11 @@ class Params:
     rounds: int = _f(
         16, "Priority updates per render iteration (paper: after every coefficient); "
         "more rounds follow the paper more closely at O(pixels) cost each", 1, 4096)
+    recon_variance: str = _f(
+        "sample", "sigma^2(F) of Eq. 10 (reconstruction thresholds): sample (the per-sample "
+        "variance from the sample subsets, default: threshold = c_s standard deviations) or "
+        "range (the paper's (I_max - I_min)^2 bound, d2(N)^2 x larger: much smoother, "
+        "erases texture)", choices=("sample", "range"))
     sampler_intensity: float = _f(
         0.5, "Median luminance the sampler maps the image to before Eq. 8; higher weighs "
         "edges (wavelet magnitude) more against variance", 1e-3, 1e3)
@@ -263,17 +283,34 @@ def expected_range(n) -> np.ndarray:
     return direct(np.atleast_1d(n)).reshape(n.shape)
 
 
-def mitchell_variance(mean: np.ndarray, sample_var: np.ndarray, n) -> np.ndarray:
+def spread_factor(n, mode: str = "sample") -> np.ndarray:
+    """Squared spread ``sigma^2(F) / s^2`` of the functional-variance estimator.
+
+    ``"range"``: ``d2(N)^2``, so that ``sigma^2(F) = (I_max - I_min)^2`` in
+    expectation (the paper's upper bound); ``"sample"``: 1, ``sigma^2(F) = s^2``.
+    n : array of sample counts -> float64 array of the same shape.
+    """
+    if mode == "range":
+        d2 = expected_range(n)
+        return d2 * d2
+    if mode != "sample":
+        raise ValueError(f"recon_variance must be 'sample' or 'range', not {mode!r}")
+    return np.ones(np.shape(n))
+
+
+def mitchell_variance(mean: np.ndarray, sample_var: np.ndarray, n, mode: str = "range"
+                      ) -> np.ndarray:
     """Squared Mitchell contrast ``(I_max - I_min)^2 / (I_max + I_min)^2`` (Eq. 5).
 
-    With ``I_max - I_min = d2(N) s`` and ``I_max + I_min = 2 |mu|``, capped at 1.
+    Numerator ``spread_factor(N, mode) s^2`` (``"range"``: ``(d2(N) s)^2``, the
+    expected squared range; ``"sample"``: ``s^2``), ``I_max + I_min = 2 |mu|``;
+    capped at 1.
 
     mean, sample_var : (H, W, C) per-channel pixel mean and per-sample variance
     n : (H, W) sample counts
     Returns (H, W) float64 in [0, 1], the largest over channels.
     """
-    d2 = expected_range(n)[..., None]
-    num = d2 * d2 * np.maximum(sample_var, 0.0)
+    num = spread_factor(n, mode)[..., None] * np.maximum(sample_var, 0.0)
     den = 4.0 * mean * mean
     with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
         c2 = np.where(num >= den, (num > 0).astype(np.float64), num / np.where(den > 0, den, 1.0))
@@ -492,8 +529,7 @@ def wavelet_reconstruct(mean: np.ndarray, var: np.ndarray, n, params: Params | N
     h, w, c = prep.mean.shape
     full = wv.max_levels((h, w))
     levels = full if int(params.levels) <= 0 else min(int(params.levels), full)
-    d2 = expected_range(prep.n)
-    d2sq = d2 * d2
+    d2sq = spread_factor(prep.n, params.recon_variance)
     ratios = _natural_ratios((h, w), levels, bank, float(params.recon_filter_sum), d2sq)
 
     def work(ch):
@@ -546,7 +582,8 @@ def reconstruct(buf: Buffers, params: Params | None = None) -> MethodResult:
     """AWR reconstruction of the accumulated samples (Sec. 4.2, Eq. 7, 10, 11).
 
     Uses ``buf.color.mean``, ``buf.variance_of_mean()`` and ``buf.n``; the
-    functional variance of Eq. 10 is ``d2(N)^2 s^2`` (module docstring).
+    functional variance of Eq. 10 is ``s^2`` (``recon_variance = "sample"``) or
+    ``d2(N)^2 s^2`` (``"range"``, the paper's bound; module docstring).
     Pixels with fewer than 2 subsets (variance ``+inf``) get the image's own
     MAD noise estimate; pixels without samples are filled from neighbours.
 
@@ -571,7 +608,7 @@ def denoise(color: np.ndarray, color_var: np.ndarray, features: dict | None = No
     features : ignored (AWR uses no feature passes)
     params : Params
     spp : samples per pixel of the render (scalar or (H, W)); sets ``d2(N)`` of
-        the range estimate.  Default 16 when unknown.
+        the range estimate (``recon_variance = "range"``).  Default 16 when unknown.
     """
     color = np.asarray(color, np.float64)
     return wavelet_reconstruct(color, color_var, np.broadcast_to(
@@ -595,7 +632,7 @@ def _sampler_inputs(buf: Buffers, params: Params) -> _SamplerInputs:
     h, w = prep.n.shape
     levels = min(int(params.sample_levels), wv.max_levels((h, w)))
     s2 = np.minimum(prep.var * np.maximum(prep.n, 1.0)[..., None], _BIG_VAR)
-    sigma_f = np.where(prep.missing, 1.0, mitchell_variance(prep.mean, s2, prep.n))
+    sigma_f = np.where(prep.missing, 1.0, mitchell_variance(prep.mean, s2, prep.n, "range"))
     lum = prep.mean @ LUMA
     pos = lum[lum > 0]
     med = float(np.median(pos)) if pos.size else 0.0

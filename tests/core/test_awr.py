@@ -121,24 +121,44 @@ def test_zero_variance_input_comes_back_unchanged(shape, wavelet):
     assert np.array_equal(res.error, np.zeros(shape))
 
 
-def test_constant_plus_noise_comes_back_near_constant():
+# the paper's range bound smooths flat noise much more than one standard
+# deviation (our default); both keep the mean (core/awr.py docstring)
+@pytest.mark.parametrize("mode, factor", [("range", 5.0), ("sample", 1.5)])
+def test_constant_plus_noise_comes_back_near_constant(mode, factor):
     truth = np.full((48, 48, 3), 0.5)
     buf = gaussian_buffers(truth, 0.3, k=4, per=4)
-    res = awr.reconstruct(buf)
+    res = awr.reconstruct(buf, awr.Params(recon_variance=mode))
     noise_in = np.std(buf.color.mean - truth)
     noise_out = np.std(res.image - truth)
-    assert noise_out < noise_in / 5
+    assert noise_out < noise_in / factor
     assert abs(res.image.mean() - 0.5) < 0.01
 
 
+@pytest.mark.parametrize("mode, factor", [("range", 4.0), ("sample", 2.2)])
 @pytest.mark.parametrize("wavelet", ["cdf97", "legall53", "haar"])
-def test_piecewise_smooth_error_several_times_below_input(wavelet):
+def test_piecewise_smooth_error_several_times_below_input(wavelet, mode, factor):
     truth = piecewise_smooth(64, 64)
     buf = gaussian_buffers(truth, 0.4 * np.sqrt(truth), k=4, per=4)
-    res = awr.reconstruct(buf, awr.Params(wavelet=wavelet))
+    res = awr.reconstruct(buf, awr.Params(wavelet=wavelet, recon_variance=mode))
     mse_in = np.mean((buf.color.mean - truth) ** 2)
     mse_out = np.mean((res.image - truth) ** 2)
-    assert mse_out < mse_in / 3
+    assert mse_out < mse_in / factor
+
+
+def test_sample_variance_keeps_texture_the_range_bound_erases():
+    """A fine checkerboard whose contrast is 3 noise standard deviations of
+    the mean: the range bound (thresholds ~3.5 sigma at N = 16) flattens it
+    into its mean, one-sigma thresholds keep most of it (the soft_shadows
+    floor; module docstring)."""
+    y, x = np.mgrid[0:64, 0:64]
+    truth = np.repeat((0.4 + 0.15 * ((x + y) % 2))[..., None], 3, axis=-1)
+    buf = gaussian_buffers(truth, 0.2, k=4, per=4)  # sd of the mean 0.05
+    err = {m: np.mean((awr.reconstruct(buf, awr.Params(recon_variance=m)).image - truth) ** 2)
+           for m in ("sample", "range")}
+    mse_in = np.mean((buf.color.mean - truth) ** 2)
+    assert err["range"] > 0.5 * np.var(truth)  # checker mostly gone
+    assert err["sample"] < err["range"] / 1.5
+    assert err["sample"] < mse_in
 
 
 def test_larger_smoothing_constant_removes_more_noise():
@@ -153,15 +173,21 @@ def test_larger_smoothing_constant_removes_more_noise():
 def test_matches_independent_haar_implementation_with_pywavelets():
     """Eq. 10-11 by hand: Haar squared filters are pair averages, so with the
     2^-1/2 renormalisation Delta_k^2 = 2^-k * (2^k x 2^k block mean of
-    d2(N)^2 Var); soft threshold PyWavelets' coefficients and synthesise."""
+    sigma^2(B)) with sigma^2(B) = d2(N)^2 Var (range) or Var (sample); soft
+    threshold PyWavelets' coefficients and synthesise."""
     rng = np.random.default_rng(3)
     h = w = 32
     truth = piecewise_smooth(h, w)
     var = rng.uniform(0.001, 0.01, (h, w, 3))
     color = truth + np.sqrt(var) * rng.standard_normal(truth.shape)
     n = 16
-    res = awr.denoise(color, var, {}, awr.Params(wavelet="haar"), spp=n)
-    rvar = awr.expected_range(n) ** 2 * var
+    for mode, rvar in (("range", awr.expected_range(n) ** 2 * var), ("sample", var)):
+        res = awr.denoise(color, var, {}, awr.Params(wavelet="haar", recon_variance=mode), spp=n)
+        np.testing.assert_allclose(res.image, _pywt_haar_soft(color, rvar), atol=1e-12)
+
+
+def _pywt_haar_soft(color, rvar):
+    h, w = color.shape[:2]
     out = np.empty_like(color)
     for c in range(3):
         coeffs = pywt.wavedec2(color[..., c], "haar", mode="symmetric", level=5)
@@ -173,7 +199,7 @@ def test_matches_independent_haar_implementation_with_pywavelets():
             t = np.sqrt(2.0 ** -k * block)
             new.append(tuple(np.sign(d) * np.maximum(np.abs(d) - t, 0) for d in coeffs[idx]))
         out[..., c] = pywt.waverec2(new, "haar", mode="symmetric")
-    np.testing.assert_allclose(res.image, out, atol=1e-12)
+    return out
 
 
 def test_denoise_equals_reconstruct_on_the_same_statistics():
@@ -223,7 +249,9 @@ def test_single_subset_falls_back_to_mad_noise_estimate():
     res = awr.reconstruct(buf)
     assert res.info["unknown_variance_pixels"] == 40 * 40
     assert np.isfinite(res.image).all() and np.isfinite(res.error).all()
-    assert np.std(res.image - truth) < np.std(noisy - truth) / 3
+    assert np.std(res.image - truth) < np.std(noisy - truth) / 1.5
+    bound = awr.reconstruct(buf, awr.Params(recon_variance="range"))
+    assert np.std(bound.image - truth) < np.std(noisy - truth) / 3
     # the estimate is the actual noise level: error estimate ~ 0.01 before smoothing
     raw = awr.reconstruct(buf, awr.Params(smoothing=0.0))
     assert 0.006 < raw.error.mean() < 0.015
