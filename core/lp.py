@@ -69,7 +69,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from .buffers import Buffers
-from .lp_solve import ring_fits, ring_layout
+from .lp_solve import Design, ring_fits, ring_layout
 from .method import MethodResult, allocate, params_from_dict
 
 PASSES = ("normal", "albedo", "depth")
@@ -121,7 +121,7 @@ class Params:
         "min": 0, "max": 1})
     chunk: int = field(default=256, metadata={
         "help": "centre pixels processed per vectorised batch: larger has less Python overhead "
-                "but uses ~180 KB more memory per centre",
+                "but uses ~80 KB more memory per centre",
         "min": 16, "max": 65536})
 
     @classmethod
@@ -252,11 +252,12 @@ class _Frame:
     """The inputs of one frame, sanitised and stored plane by plane over the
     padded frame (``(ncol, Hp * Wp)``), so a window gather is one ``np.take``.
 
-    Window planes: features (D - 2) | y (3) | s (3, variance subtracted by
-    Eq. 5/7) | w (fit weight) | fvalid.  Other planes (read per pixel or at
-    centres only): ``n`` (samples) and ``centre``: var0 (3, variance of the
-    mean, +inf unknown) | per feature group, the window sum of its variance
-    (box filter, for the TSVD threshold).
+    Window planes: features (D - 2) | var0 (3, the variance of the mean, +inf
+    where unknown: ``xi(k(0))`` of Sec. 7 at the centre and, where finite, the
+    amount Eq. 5/7 subtract) | y (3) | w (fit weight) | fvalid.  Other planes
+    (read per pixel or at centres only): ``logn`` (log of the samples, >= 0)
+    and ``centre``: per feature group, the window sum of its variance (box
+    filter, for the TSVD threshold).
     """
 
     def __init__(self, color, color_var, features, feature_var, n, radius, subtract):
@@ -271,10 +272,11 @@ class _Frame:
             cols += _GROUP_CHANNELS[g]
         self.groups, self.names, self.dim = groups, names, cols
         nf = cols - 2
-        self.c_y, self.c_s, self.c_w, self.c_f = nf, nf + 3, nf + 6, nf + 7
+        self.c_v, self.c_y, self.c_w, self.c_f = nf, nf + 3, nf + 6, nf + 7
         self.ncol = nf + 8
+        self.subtract = bool(subtract)
         planes = np.zeros((self.ncol, self.hp, self.wp))
-        centre = np.zeros((3 + len(groups), self.hp, self.wp))
+        centre = np.zeros((len(groups), self.hp, self.wp))
         inner = planes[:, r:r + h, r:r + w]
         noise = np.zeros((len(groups), h, w))
         fvalid = np.ones((h, w), bool)
@@ -286,7 +288,7 @@ class _Frame:
                 f = np.moveaxis(f[..., :hi - lo], -1, 0)
                 ok = (np.abs(f) < _HUGE).all(axis=0)             # finite, squares stay finite
                 fvalid &= ok
-                inner[lo - 2:hi - 2] = np.where(ok, f, 0.0)
+                np.copyto(inner[lo - 2:hi - 2], f, where=ok)    # (no full-size temporaries)
                 fv = feature_var.get(g) if feature_var else None
                 if fv is not None:
                     fv = np.asarray(fv, np.float64).reshape(h, w, -1)[..., :hi - lo]
@@ -297,20 +299,22 @@ class _Frame:
         nn = np.where(np.isfinite(nn), nn, 0.0)
         with np.errstate(invalid="ignore"):
             cvalid = (np.abs(color) < _HUGE).all(axis=0) & (nn > 0)
-        inner[self.c_y:self.c_y + 3] = np.where(cvalid, color, 0.0)
+        np.copyto(inner[self.c_y:self.c_y + 3], color, where=cvalid)
         var = np.moveaxis(np.broadcast_to(np.asarray(color_var, np.float64), (h, w, 3)), -1, 0)
         with np.errstate(invalid="ignore"):
             known = (var >= 0) & (var < _HUGE * _HUGE) & cvalid
-        if subtract:
-            inner[self.c_s:self.c_s + 3] = np.where(known, var, 0.0)
+        inner[self.c_v:self.c_v + 3] = np.inf
+        np.copyto(inner[self.c_v:self.c_v + 3], var, where=known)
+        del known
         inner[self.c_w] = cvalid & fvalid
         inner[self.c_f] = fvalid
-        self.n = np.zeros((self.hp, self.wp))
-        self.n[r:r + h, r:r + w] = nn
-        self.n = self.n.ravel()
-        centre[:3, r:r + h, r:r + w] = np.where(known, var, np.inf)
+        # log max(n, 1) (0 in the padding): all that Sec. 5.2's n_i^(-4/(d_c+4)) needs
+        self.logn = np.zeros((self.hp, self.wp))
+        self.logn[r:r + h, r:r + w] = np.log(np.maximum(nn, 1.0))
+        self.logn = self.logn.ravel()
         for gi in range(len(groups)):
-            centre[3 + gi] = _box_sum(np.pad(noise[gi] * fvalid, r), r)
+            noise[gi] *= fvalid
+            _box_sum(np.pad(noise[gi], r), r, out=centre[gi])
         self.planes = planes.reshape(self.ncol, self.hp * self.wp)
         self.centre = centre.reshape(len(centre), self.hp * self.wp)
 
@@ -318,56 +322,62 @@ class _Frame:
         return (rows + self.pad) * self.wp + (cols + self.pad)
 
     def release(self):
-        self.planes = self.centre = self.n = None
+        self.planes = self.centre = self.logn = None
 
 
-def _box_sum(plane: np.ndarray, r: int) -> np.ndarray:
+def _box_sum(plane: np.ndarray, r: int, out: np.ndarray | None = None) -> np.ndarray:
     """Sum over the (2r+1)^2 window around every pixel of a plane zero-padded
-    by r (summed-area table); >= 0 for non-negative input."""
+    by r (summed-area table, written into ``out`` when given); >= 0 for
+    non-negative input."""
     hp, wp = plane.shape
     sat = np.zeros((hp + 1, wp + 1))
-    np.cumsum(np.cumsum(plane, axis=0), axis=1, out=sat[1:, 1:])
-    out = np.zeros((hp, wp))
+    body = sat[1:, 1:]
+    np.cumsum(plane, axis=0, out=body)
+    np.cumsum(body, axis=1, out=body)
+    out = np.zeros((hp, wp)) if out is None else out
+    out[...] = 0.0
     k = 2 * r + 1
     if hp >= k and wp >= k:
-        out[r:hp - r, r:wp - r] = sat[k:, k:] - sat[:hp + 1 - k, k:] - sat[k:, :wp + 1 - k] + sat[:hp + 1 - k, :wp + 1 - k]
-    return np.maximum(out, 0.0)
+        o = out[r:hp - r, r:wp - r]
+        np.subtract(sat[k:, k:], sat[:hp + 1 - k, k:], out=o)
+        o -= sat[k:, :wp + 1 - k]
+        o += sat[:hp + 1 - k, :wp + 1 - k]
+    return np.maximum(out, 0.0, out=out)
 
 
 class _Workspace:
     """Scratch arrays reused by every chunk: allocating fresh multi-megabyte
-    temporaries per chunk costs more than the arithmetic (page faults)."""
+    temporaries per chunk costs more than the arithmetic (page faults).
 
-    def __init__(self, nmax: int, k: int, ncol: int, d: int, radius: int):
+    Two window buffers of D x K values per centre take turns (``a``: the raw
+    feature gather, then the TSVD scratch, then the features sorted by model
+    size; ``b``: the features, then the other gathered planes, var0 | y | w |
+    fvalid, in sorted order), ``m``/``mw`` hold one ring of ``[z y']`` and its
+    weighted copy (D + 4 rows of at most 8R pixels) and ``mom`` the ring
+    moments (R + 1 matrices of (D + 4)^2): per centre
+    ``8 (2 K max(D, 8) + 2 (D + 4) 8R + (R + 1) (D + 4)^2)`` bytes (80 KB with
+    R = 9 and all passes, D = 9).
+    """
+
+    def __init__(self, nmax: int, k: int, d: int, radius: int):
         self.k, self.qmax, self.r1 = k, d + 4, radius + 1   # design (<= D + 1) + y' (3)
-        self.g = np.empty(ncol * nmax * k)
-        self.f = np.empty(nmax * d * k)
-        self.m = np.empty(nmax * self.qmax * k)
-        self.mw = np.empty(nmax * self.qmax * k)           # also the TSVD scratch
+        rows = max(d, 8)
+        self.a = np.empty(rows * nmax * k)
+        self.b = np.empty(rows * nmax * k)
+        self.m = np.empty(nmax * self.qmax * max(8 * radius, 1))
+        self.mw = np.empty(nmax * self.qmax * max(8 * radius, 1))
         self.mom = np.empty(self.r1 * nmax * self.qmax ** 2)
-        self.cum = np.empty(self.r1 * nmax * self.qmax ** 2)
 
-    def gather(self, n, ncol):
-        return self.g[:ncol * n * self.k].reshape(ncol, n, self.k)
+    @staticmethod
+    def view(buf, *shape):
+        return buf[:int(np.prod(shape))].reshape(shape)
 
-    def feats(self, n, d):
-        return self.f[:n * d * self.k].reshape(n, d, self.k)
-
-    def ring(self, n, p, used=None):
-        """Views for ``ring_fits`` of n centres with p unknowns; ``used``
-        ([pixel-part, moment-part] offsets) lets several groups share the
-        buffers one after the other."""
+    def ring(self, n, p):
+        """Views for ``ring_fits`` of n centres with p unknowns."""
         q = p + 3
-        a, b = used if used is not None else (0, 0)
-        size, msize = n * q * self.k, self.r1 * n * q * q
-        views = {"m": self.m[a:a + size].reshape(n, q, self.k),
-                 "mw": self.mw[a:a + size].reshape(n, q, self.k),
-                 "mom": self.mom[b:b + msize].reshape(self.r1, n, q, q),
-                 "cum": self.cum[b:b + msize].reshape(self.r1, n, q, q)}
-        if used is not None:
-            used[0] += size
-            used[1] += msize
-        return views
+        msize = self.r1 * n * q * q
+        return {"m": self.m, "mw": self.mw,
+                "mom": self.mom[:msize].reshape(self.r1, n, q, q)}
 
 
 # ------------------------------------------------------------------------ the models
@@ -382,7 +392,9 @@ def fit_centres(frame: _Frame, centre_flat: np.ndarray, params: Params, keep_mod
     k(0)).  ``xi_c(k(r)) = xi_acc(k(r)) / |k(r)|`` with |k(r)| the number of
     usable pixels in the window.  Centres are processed in groups of equal
     model size p = d_c + 1, so each group's normal equations are only as large
-    as its rank needs.
+    as its rank needs; they are sorted by p after the TSVD, so every group is a
+    slice of the workspace (no copies), and each group's design is built one
+    ring at a time (:class:`core.lp_solve.Design`).
 
     Returns a dict with ``index`` (N, K) flat padded pixel indices of every
     window, ``ring`` (K,), ``pred`` (N, 3, K) each model's prediction (Eq. 1)
@@ -397,54 +409,69 @@ def fit_centres(frame: _Frame, centre_flat: np.ndarray, params: Params, keep_mod
     n_c = len(centre_flat)
     d = frame.dim
     if ws is None:
-        ws = _Workspace(n_c, k, frame.ncol, d, radius)
+        ws = _Workspace(n_c, k, d, radius)
     index = centre_flat[:, None] + (dy * frame.wp + dx)[None, :]
-    g = ws.gather(n_c, frame.ncol)
-    np.take(frame.planes[:frame.ncol], index, axis=1, out=g)
-    feats = ws.feats(n_c, d)
+    nf = d - 2
+    # features and their TSVD (Sec. 7); mode="clip" (the indices are in range)
+    # writes straight into the workspace, mode="raise" would gather into a copy first
+    feats = ws.view(ws.b, n_c, d, k)
     feats[:, 0] = dy
     feats[:, 1] = dx
-    feats[:, 2:] = np.swapaxes(g[:d - 2], 0, 1)
-    fvalid, w = g[frame.c_f], g[frame.c_w]
+    if nf:
+        raw = ws.view(ws.a, nf, n_c, k)
+        np.take(frame.planes[:nf], index, axis=1, out=raw, mode="clip")
+        feats[:, 2:] = np.swapaxes(raw, 0, 1)
+        del raw
+    fvalid = np.take(frame.planes[frame.c_f], index, mode="clip")
     transform, rank, _, _ = feature_transform(
-        feats, fvalid, frame.centre[3:, centre_flat].T, frame.groups, radius,
+        feats, fvalid, frame.centre[:, centre_flat].T, frame.groups, radius,
         params.svd_floor, params.svd_noise_factor, params.min_rank,
-        work=ws.mw[:n_c * d * k].reshape(n_c, d, k))
+        work=ws.view(ws.a, n_c, d, k))
+    del fvalid
     feats -= feats[:, :, :1].copy()                                    # x_i - x_c
+    # centres sorted by model size p = d_c + 1, so every group below is a slice
+    order = np.argsort(rank, kind="stable")
+    x = np.take(feats, order, axis=0, out=ws.view(ws.a, n_c, d, k), mode="clip")
+    del feats
+    g = ws.view(ws.b, 8, n_c, k)                                       # var0 | y | w | fvalid
+    np.take(frame.planes[frame.c_v:], index[order], axis=1, out=g, mode="clip")
+    var0, y = g[0:3], np.swapaxes(g[3:6], 0, 1)                        # (3, N, K), (N, 3, K)
+    w, fvalid = g[6], g[7]
     centre_ok = w[:, 0] > 0
-    y = np.swapaxes(g[frame.c_y:frame.c_y + 3], 0, 1)                  # (N, 3, K)
-    s = np.swapaxes(g[frame.c_s:frame.c_s + 3], 0, 1)
     beta0 = np.where(centre_ok[:, None], y[:, :, 0], 0.0)
-    xi0 = np.where(centre_ok[:, None], frame.centre[:3, centre_flat].T, np.inf)
+    xi0 = np.where(centre_ok[:, None], var0[:, :, 0].T, np.inf)
+    # s of Eq. 5/7, in place: the known variances (0 where unknown), or 0 for the literal equations
+    if frame.subtract:
+        np.copyto(var0, 0.0, where=~np.isfinite(var0))
+    else:
+        var0[...] = 0.0
+    s = np.swapaxes(var0, 0, 1)
 
     xi = np.empty((radius + 1, n_c, 3))
     beta = np.zeros((n_c, 3, d + 1))
     pred = np.empty((n_c, 3, k))
     pinv = np.zeros((n_c, 3, d + 1, d + 1)) if keep_models else None
     idx_c = np.arange(3)[None, :]
-    used = [0, 0]
-    for p in np.unique(rank + 1):
-        sel = np.nonzero(rank + 1 == p)[0]
-        whole = len(sel) == n_c
-        take = (lambda a: a) if whole else (lambda a: a[sel])
-        work = ws.ring(len(sel), int(p), used)
-        z = work["m"][:, :p]
-        z[:, 0] = 1.0
-        np.matmul(np.swapaxes(take(transform)[:, :, :p - 1], 1, 2), take(feats), out=z[:, 1:])
-        fv = take(fvalid)
-        z[:, 1:] *= fv[:, None, :]
-        wg, b0, x0 = take(w), take(beta0), take(xi0)
-        fits = ring_fits(z, take(y), wg, take(s), b0, x0, radius, params.delta,
-                         keep_gram=keep_models, work=work)
+    rank_s = rank[order]
+    cuts = np.concatenate([[0], np.flatnonzero(np.diff(rank_s)) + 1, [n_c]])
+    for lo, hi in zip(cuts[:-1], cuts[1:]):
+        p = int(rank_s[lo]) + 1
+        sel = order[lo:hi]                                             # the group, in input order
+        grp = slice(lo, hi)                                            # ... in sorted order
+        design = Design(transform[sel][:, :, :p - 1], x[grp], fvalid[grp])
+        x0 = xi0[grp]
+        fits = ring_fits(design, y[grp], w[grp], s[grp], beta0[grp], x0, radius, params.delta,
+                         keep_gram=keep_models, work=ws.ring(hi - lo, p))
         with np.errstate(divide="ignore", invalid="ignore"):
             xg = fits.xi_acc / fits.count[..., None]
         xg[0] = x0
-        xi[:, sel] = np.where(np.isnan(xg), np.inf, xg)
-        r_g = np.argmin(xi[:, sel], axis=0)                            # first minimum
-        idx_n = np.arange(len(sel))[:, None]
+        xg = np.where(np.isnan(xg), np.inf, xg)
+        xi[:, sel] = xg
+        r_g = np.argmin(xg, axis=0)                                    # first minimum
+        idx_n = np.arange(hi - lo)[:, None]
         bg = np.swapaxes(fits.beta, 2, 3)[r_g, idx_n, idx_c]            # (n, 3, p)
         beta[sel, :, :p] = bg
-        pred[sel] = np.matmul(bg, z)
+        pred[sel] = design.predict(bg)
         if keep_models:
             pinv[sel, :, :p, :p] = np.linalg.inv(fits.gram[r_g, idx_n])
     r_opt = np.argmin(xi, axis=0)                                      # (N, 3)
@@ -490,25 +517,47 @@ def fit(color: np.ndarray, color_var: np.ndarray, features: dict, feature_var: d
 
     Notes
     -----
-    Memory: the padded input planes (8 (D + 10 + G) bytes per pixel, D the
-    feature count with position, G the feature groups: 176 bytes with all
+    Memory: the padded input planes (8 (D + 7 + G) bytes per pixel, D the
+    feature count with position, G the feature groups: 152 bytes with all
     three passes), running sums (88 bytes per pixel) and one workspace reused
-    by every chunk, about
-    ``chunk * 8 * (K (4 D + 14) + 2 (R+1) (D+4)^2)`` bytes (K = (2R+1)^2;
-    45 MB for the default chunk of 256).  Chunks are also limited to a band of
-    rows so their scatter stays local.
+    by every chunk (``_Workspace``), about
+    ``chunk * 8 * (2 K max(D, 8) + 16 R (D + 4) + (R+1) (D+4)^2)`` bytes
+    (K = (2R+1)^2; 20.6 MB for the default chunk of 256), plus per-chunk
+    temporaries of a few MB.  The window planes are gathered straight into
+    the workspace, the design ``z`` is built one ring at a time
+    (:class:`core.lp_solve.Design`), centres are sorted by model size so each
+    size group is a slice, and the inputs derived from the buffers (variances
+    of the means) are dropped before the fit.  Measured peak (tracemalloc, one
+    :func:`reconstruct`, inputs excluded, all passes, default parameters):
+    about 360 bytes per pixel at 512x512 (370 on a textured scene of rank 8),
+    280 at 1024x1024 (the workspace is a fixed ~20 MB, so small images cost
+    more per pixel: ~680 at 256x256).
+    Chunks are also limited to a band of rows so their scatter stays local.
     """
     params = params or Params()
+    return _fit_frame(_pack(color, color_var, features, feature_var, n, params), params, keep_models)
+
+
+def _pack(color, color_var, features, feature_var, n, params: Params) -> _Frame:
     color = np.asarray(color, np.float64)
     if color.ndim != 3 or color.shape[-1] != 3:
         raise ValueError(f"color must be (H, W, 3), got {color.shape}")
-    h, w = color.shape[:2]
+    return _Frame(color, color_var, features, feature_var, n, int(params.radius), params.variance_corrected)
+
+
+def _fit_buffers(buf: Buffers, params: Params) -> LPFit:
+    """:func:`fit` of accumulated buffers; the derived inputs (variances of the
+    means) are dropped once the frame is packed, before the models are fitted."""
+    return _fit_frame(_pack(*_inputs(buf), buf.n, params), params)
+
+
+def _fit_frame(frame: _Frame, params: Params, keep_models: bool = False) -> LPFit:
+    """Sec. 4-5 on a packed frame (see :func:`fit`); releases the frame's planes."""
+    h, w = frame.h, frame.w
     radius = int(params.radius)
-    frame = _Frame(color, color_var, features, feature_var, n, radius, params.variance_corrected)
-    del color, color_var, features, feature_var, n      # the frame holds what is needed
     k = (2 * radius + 1) ** 2
     chunk = max(1, min(int(params.chunk), h * w))
-    ws = _Workspace(chunk, k, frame.ncol, frame.dim, radius)
+    ws = _Workspace(chunk, k, frame.dim, radius)
     acc = _Accumulator(frame)
     covered = np.zeros((h, w), bool)
     is_centre = np.zeros((h, w), bool)
@@ -516,8 +565,9 @@ def fit(color: np.ndarray, color_var: np.ndarray, features: dict, feature_var: d
     grans = [max(int(params.granularity) or (2 * radius + 1), 1)]
     while grans[-1] > 1:
         grans.append(grans[-1] // 2)
-    # rows per chunk: keep the scattered band under ~2^18 pixels
-    band_rows = max(1, (1 << 18) // frame.wp - 2 * radius)
+    # rows per chunk: keep the scattered band (and the bincount temporaries of
+    # ``_Accumulator.add``, 8 bytes per band pixel) under ~2^17 pixels
+    band_rows = max(1, (1 << 17) // frame.wp - 2 * radius)
     centres, c_rad, c_rank, c_err = [], [], [], []
     models = {"beta": [], "P": [], "transform": []} if keep_models else None
     passes = 0
@@ -608,25 +658,30 @@ class _Accumulator:
         lo = int(index.min())
         span = int(index.max()) + 1 - lo
         sl = slice(lo, lo + span)
-        n_c, k = index.shape
+        k = index.shape[1]
         pred = res["pred"]                                               # (N, 3, K)
         expo = -4.0 / (res["rank"].astype(np.float64) + 4.0)             # (N,)
         positions = np.arange(k)
-        nplane = self.frame.n
+        logn = self.frame.logn
         for c in range(3):
             length = (2 * r_opt[:, c] + 1) ** 2
             inside = positions[None, :] < length[:, None]                # (N, K), a prefix per row
-            which = np.repeat(np.arange(n_c), length)                    # centre of each entry
-            gidx = index[inside]
-            local = gidx - lo
+            local = index[inside]                                        # entries, centre by centre
+            xi = np.repeat(res["xi_opt"][:, c], length)
+            # xi n_i^(-4/(d_c+4)), the error reduction rate of Moon et al. 2014 (n clamped to >= 1)
+            dxi = np.take(logn, local)
+            dxi *= np.repeat(expo, length)
+            np.exp(dxi, out=dxi)
+            dxi *= xi
+            local -= lo
             self.pred[c, sl] += np.bincount(local, pred[:, c][inside], span)
-            xi = res["xi_opt"][which, c]
+            del inside
             self.err[c, sl] += np.bincount(local, xi, span)
-            # n_i^(-4/(d_c+4)), the error reduction rate of Moon et al. 2014 (n clamped to >= 1)
-            decay = np.exp(np.log(np.maximum(nplane[gidx], 1.0)) * expo[which])
-            self.dxi[c, sl] += np.bincount(local, xi * decay, span)
+            self.dxi[c, sl] += np.bincount(local, dxi, span)
+            del xi, dxi
             self.cnt[c, sl] += np.bincount(local, None, span).astype(np.float32)
-            self.rad[sl] += np.bincount(local, r_opt[which, c].astype(np.float64), span).astype(np.float32)
+            rad = np.repeat(r_opt[:, c].astype(np.float64), length)
+            self.rad[sl] += np.bincount(local, rad, span).astype(np.float32)
 
 
 def _finite_errors(err: np.ndarray) -> np.ndarray:
@@ -662,7 +717,7 @@ def reconstruct(buf: Buffers, params: Params | None = None) -> MethodResult:
         (the :class:`LPFit`, used by :func:`sample_map`).
     """
     params = params if isinstance(params, Params) else params_from_dict(Params, params)
-    return _result(fit(*_inputs(buf), buf.n, params))
+    return _result(_fit_buffers(buf, params))
 
 
 def _result(res: LPFit) -> MethodResult:
@@ -694,8 +749,7 @@ def sample_map(buf: Buffers, result: MethodResult, budget: int, params: Params |
     params = params if isinstance(params, Params) else params_from_dict(Params, params)
     fitres = result.info.get("lp_fit") if result is not None else None
     if not isinstance(fitres, LPFit) or fitres.image.shape[:2] != buf.shape:
-        color, var, feats, fvars = _inputs(buf)
-        fitres = fit(color, var, feats, fvars, buf.n, params)
+        fitres = _fit_buffers(buf, params)
     if state is not None:
         state["iterations"] = int(state.get("iterations", 0)) + 1
     f = fitres.image

@@ -19,6 +19,7 @@ loops run over rings and over the (at most 10) matrix dimensions.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import lru_cache
 
 import numpy as np
 
@@ -40,15 +41,23 @@ def ring_layout(radius: int):
     starts : (R+2,) int64
         Ring r occupies ``[starts[r], starts[r+1])`` = ``[(2r-1)^2, (2r+1)^2)``
         (ring 0 is the single centre pixel), so ``starts[r+1] = k(r)``.
+        The arrays are cached per radius and read-only.
     """
-    radius = int(radius)
+    return _ring_layout(int(radius))
+
+
+@lru_cache(maxsize=None)
+def _ring_layout(radius: int):
     side = np.arange(-radius, radius + 1)
     dy, dx = np.meshgrid(side, side, indexing="ij")
     dy, dx = dy.ravel(), dx.ravel()
     ring = np.maximum(np.abs(dy), np.abs(dx))
     order = np.lexsort((dx, dy, ring))
     starts = np.array([0] + [(2 * q + 1) ** 2 for q in range(radius + 1)], np.int64)
-    return dy[order].astype(np.int64), dx[order].astype(np.int64), ring[order].astype(np.int64), starts
+    out = dy[order].astype(np.int64), dx[order].astype(np.int64), ring[order].astype(np.int64), starts
+    for a in out:
+        a.flags.writeable = False
+    return out
 
 
 def spd_solve(a: np.ndarray, b: np.ndarray) -> np.ndarray:
@@ -68,11 +77,26 @@ def spd_solve(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     -------
     x : (N, p, C) float64.
     """
-    n, p, _ = a.shape
-    # stack axis last: every elementary step is one vector operation over all systems
-    at = np.ascontiguousarray(np.moveaxis(a, 0, -1))
-    bt = np.ascontiguousarray(np.moveaxis(b, 0, -1))
-    low = np.zeros_like(at)
+    # stack axis last: every elementary step is one vector operation over all
+    # systems (copies: the solve works in place)
+    at = np.moveaxis(a, 0, -1).copy()
+    bt = np.moveaxis(b, 0, -1).copy()
+    return np.moveaxis(_spd_solve_t(at, bt), -1, 0)
+
+
+def _spd_solve_t(at: np.ndarray, bt: np.ndarray) -> np.ndarray:
+    """:func:`spd_solve` with the stack axis last, in place: ``at`` (p, p, M)
+    is overwritten by its Cholesky factor and ``bt`` (p, C, M) by the
+    solution, which is returned."""
+    return _cho_solve_t(_cholesky_t(at), bt)
+
+
+def _cholesky_t(at: np.ndarray) -> np.ndarray:
+    """Cholesky factors L (``a = L L^T``) of a stack ``at`` (p, p, M), in place:
+    the lower triangle is overwritten (the upper one is left as it was and is
+    never read by :func:`_cho_solve_t`).  Pivots are clamped to 1e-300."""
+    p = at.shape[0]
+    low = at
     for j in range(p):
         if j:
             s = at[j, j] - (low[j, :j] * low[j, :j]).sum(0)
@@ -86,19 +110,74 @@ def spd_solve(a: np.ndarray, b: np.ndarray) -> np.ndarray:
             if j:
                 off = off - (low[j + 1:, :j] * low[j, :j][None]).sum(1)
             low[j + 1:, j] = off * inv
-    y = np.empty_like(bt)
+    return low
+
+
+def _cho_solve_t(low: np.ndarray, bt: np.ndarray) -> np.ndarray:
+    """Solve ``L L^T x = b`` given the factors of :func:`_cholesky_t` (p, p, M);
+    ``bt`` (p, C, M) is overwritten by the solution, which is returned."""
+    p = low.shape[0]
+    y = bt                                   # forward substitution, in place
     for i in range(p):
-        acc = bt[i]
+        acc = y[i]
         if i:
             acc = acc - (low[i, :i, None] * y[:i]).sum(0)
         y[i] = acc / low[i, i]
-    x = np.empty_like(bt)
+    x = y                                    # back substitution, in place
     for i in range(p - 1, -1, -1):
-        acc = y[i]
+        acc = x[i]
         if i + 1 < p:
             acc = acc - (low[i + 1:, i, None] * x[i + 1:]).sum(0)
         x[i] = acc / low[i, i]
-    return np.moveaxis(x, -1, 0)
+    return x
+
+
+class Design:
+    """The design columns ``z_i = (1, v_i T^T (x_i - x_c))`` of Eq. 1 in the
+    TSVD-prefiltered features (Sec. 7), produced a block of pixels at a time so
+    the whole (N, p, K) design of a chunk of centres is never stored.
+
+    Parameters
+    ----------
+    transform : (N, D, p - 1) float64
+        Kept columns of the feature map T (``lp.feature_transform``).
+    x : (N, D, K) float64
+        ``x_i - x_c`` of the window pixels (may be a view).
+    valid : (N, K) float64 in {0, 1}
+        v_i: 0 where the pixel's features are unusable (its z_i is (1, 0, ..., 0)).
+    """
+
+    def __init__(self, transform: np.ndarray, x: np.ndarray, valid: np.ndarray):
+        self.t = np.swapaxes(transform, 1, 2)
+        self.x, self.valid = x, valid
+        n, _, k = x.shape
+        self.shape = (n, transform.shape[2] + 1, k)
+
+    def columns(self, lo: int, hi: int, out: np.ndarray) -> np.ndarray:
+        """Write ``z_i`` of pixels lo .. hi-1 into ``out`` (N, p, hi - lo)."""
+        out[:, 0] = 1.0
+        np.matmul(self.t, self.x[:, :, lo:hi], out=out[:, 1:])
+        out[:, 1:] *= self.valid[:, None, lo:hi]
+        return out
+
+    def predict(self, beta: np.ndarray) -> np.ndarray:
+        """Eq. 1 predictions ``beta^T z_i`` of every window pixel: beta (N, C, p)
+        gives (N, C, K), evaluated as ``beta_0 + v_i (beta_1.. T^T) (x_i - x_c)``
+        (the feature map folded into the model first, one product per centre)."""
+        out = np.matmul(np.matmul(beta[:, :, 1:], self.t), self.x)
+        out *= self.valid[:, None, :]
+        out += beta[:, :, :1]
+        return out
+
+
+def _columns(z):
+    """``columns(lo, hi, out)`` of a design given as an (N, p, K) array or a :class:`Design`."""
+    if isinstance(z, np.ndarray):
+        def columns(lo, hi, out):
+            np.copyto(out, z[:, :, lo:hi])
+            return out
+        return columns
+    return z.columns
 
 
 @dataclass
@@ -132,10 +211,11 @@ def ring_fits(z: np.ndarray, y: np.ndarray, w: np.ndarray, s: np.ndarray,
 
     Parameters
     ----------
-    z : (N, p, K) float64
+    z : (N, p, K) float64 or :class:`Design`
         Design rows ``z_i = (1, (x_i - x_c)^T)`` (as columns) of the
         K = (2R+1)^2 window pixels in ``ring_layout`` order (pixel 0 is the
-        centre).  Must be finite.
+        centre).  Must be finite.  A :class:`Design` is evaluated one ring at
+        a time and never stored whole.
     y : (N, C, K) float64
         Observations (pixel means), one row per colour channel.  Finite.
     w : (N, K) float64 in {0, 1}
@@ -158,8 +238,9 @@ def ring_fits(z: np.ndarray, y: np.ndarray, w: np.ndarray, s: np.ndarray,
     keep_gram : bool
         Also return ``delta I + X^T X`` per ring.
     work : dict or None
-        Optional scratch: ``m`` and ``mw`` (N, p + C, K), ``mom`` and ``cum``
-        (R+1, N, p + C, p + C); ``m[:, :p]`` may already hold ``z``.
+        Optional scratch: ``m`` and ``mw``, flat and contiguous with at least
+        ``N (p + C) 8R`` entries each (one ring of ``[z y']`` and its weighted
+        copy), ``mom`` (R+1, N, p + C, p + C).
 
     Returns
     -------
@@ -176,7 +257,8 @@ def ring_fits(z: np.ndarray, y: np.ndarray, w: np.ndarray, s: np.ndarray,
     -----
     Observations are centred on ``beta0`` (``y' = y - y_c``: the prior becomes
     0 and ``beta(0)`` reproduces ``y_c`` exactly).  One matrix product per ring
-    gives the ring's moments ``[z y'] W [z y']^T``; the normal equations of
+    gives the ring's moments ``[z y'] W [z y']^T`` (``[z y']`` is built one
+    ring at a time, so the scratch is 8R pixels wide, not K); the normal equations of
     all rings are their cumulative sums and are solved in one batch.  Eq. 5's
     ring sum is evaluated from the ring moments as
     ``beta^T A beta - 2 beta^T b + y'^T y'`` (clamped at 0 before the variance
@@ -188,38 +270,47 @@ def ring_fits(z: np.ndarray, y: np.ndarray, w: np.ndarray, s: np.ndarray,
     radius = int(radius)
     starts = ring_layout(radius)[3]
     q = p + c
+    wide = int(np.diff(starts).max())                                   # the widest ring (8R)
+    columns = _columns(z)
     work = work or {}
     m = work.get("m")
-    m = np.empty((n, q, k)) if m is None else m
+    m = np.empty(n * q * wide) if m is None else m
     mw = work.get("mw")
-    mw = np.empty((n, q, k)) if mw is None else mw
+    mw = np.empty(n * q * wide) if mw is None else mw
     mom = work.get("mom")
     mom = np.empty((radius + 1, n, q, q)) if mom is None else mom
-    cum = work.get("cum")
-    cum = np.empty((radius + 1, n, q, q)) if cum is None else cum
-    if not np.shares_memory(m, z):
-        m[:, :p] = z
-    np.subtract(y, beta0[:, :, None], out=m[:, p:])
-    np.multiply(m, w[:, None, :], out=mw)
     # moments [z y'] W [z y']^T of every ring: one batched matrix product per ring
     for r in range(radius + 1):
         lo, hi = starts[r], starts[r + 1]
-        np.matmul(mw[:, :, lo:hi], np.swapaxes(m[:, :, lo:hi], 1, 2), out=mom[r])
-    cum[0] = mom[0]
-    for r in range(1, radius + 1):
-        np.add(cum[r - 1], mom[r], out=cum[r])
-    a = cum[:, :, :p, :p] + delta * np.eye(p)
-    beta = spd_solve(a.reshape(-1, p, p), cum[:, :, :p, p:].reshape(-1, p, c))
-    beta = beta.reshape(radius + 1, n, p, c)
-    count = cum[:, :, 0, 0].copy()
+        mr = m[:n * q * (hi - lo)].reshape(n, q, hi - lo)
+        columns(lo, hi, mr[:, :p])
+        np.subtract(y[:, :, lo:hi], beta0[:, :, None], out=mr[:, p:])
+        mwr = mw[:n * q * (hi - lo)].reshape(n, q, hi - lo)
+        np.multiply(mr, w[:, None, lo:hi], out=mwr)
+        np.matmul(mwr, np.swapaxes(mr, 1, 2), out=mom[r])
+    # the normal equations of k(r) are the running sums of the ring moments,
+    # accumulated straight into the stack-last layout of the batched Cholesky
+    # solve (which works in place): A = delta I + X^T X, b = X^T Y'
+    at = np.empty((p, p, radius + 1, n))
+    np.cumsum(np.moveaxis(mom[:, :, :p, :p], (0, 1), (2, 3)), axis=2, out=at)
+    bt = np.empty((p, c, radius + 1, n))
+    np.cumsum(np.moveaxis(mom[:, :, :p, p:], (0, 1), (2, 3)), axis=2, out=bt)
+    count = at[0, 0].copy()                                             # (R+1, N)
+    for j in range(p):
+        at[j, j] += delta
+    a = np.ascontiguousarray(np.moveaxis(at, (2, 3), (0, 1))) if keep_gram else None
+    low = _cholesky_t(at.reshape(p, p, -1))                             # (p, p, (R+1) N)
+    beta = np.moveaxis(_cho_solve_t(low, bt.reshape(p, c, -1)), -1, 0).reshape(radius + 1, n, p, c)
     xi_acc = np.empty((radius + 1, n, c))
     xi_acc[0] = xi0
     if radius >= 1:
         # Eq. 7: closed-form leave-one-out over the 9 pixels of k(1) (Allen 1974)
-        z9 = m[:, :p, :9]
-        pz = spd_solve(a[1], z9)                                        # P(k(1)) z_i
+        z9 = columns(0, 9, np.empty((n, p, 9)))
+        # P(k(1)) z_i, with the Cholesky factors of k(1) from the solve above
+        pz = _cho_solve_t(low[:, :, n:2 * n], np.moveaxis(z9, 0, -1).copy())
+        pz = np.moveaxis(pz, -1, 0)
         h = (z9 * pz).sum(axis=1)                                       # (N, 9)
-        res = np.matmul(np.swapaxes(beta[1], 1, 2), z9) - m[:, p:, :9]
+        res = np.matmul(np.swapaxes(beta[1], 1, 2), z9) - (y[:, :, :9] - beta0[:, :, None])
         res /= np.maximum(1.0 - h, 1e-12)[:, None, :]
         res *= res
         res -= s[:, :, :9]
@@ -238,4 +329,4 @@ def ring_fits(z: np.ndarray, y: np.ndarray, w: np.ndarray, s: np.ndarray,
         quad -= np.moveaxis(ws_ring, 2, 0)
         xi_acc[2:] = xi_acc[1] + np.cumsum(quad, axis=0)
     beta[:, :, 0, :] += beta0
-    return RingFits(beta, xi_acc, count, a if keep_gram else None)
+    return RingFits(beta, xi_acc, count, a)

@@ -8,7 +8,7 @@ from hypothesis import strategies as st
 
 from core import lp
 from core.buffers import Buffers
-from core.lp_solve import ring_fits, ring_layout, spd_solve
+from core.lp_solve import Design, ring_fits, ring_layout, spd_solve
 from core.method import allocate, params_from_dict
 
 
@@ -125,6 +125,44 @@ def test_rls_equals_recursion_and_batch_least_squares():
             assert np.allclose(got, rec, rtol=1e-6, atol=1e-6), (n, r)
             assert np.allclose(got, batch, rtol=1e-6, atol=1e-6), (n, r)
         assert fits.count[radius, n] == w[n].sum()
+
+
+def test_spd_solve_of_one_system_leaves_its_inputs_alone():
+    """The batched Cholesky works in place on copies, also when a stack of one
+    system is already contiguous in the solver's layout."""
+    a = np.array([[[4.0, 1.0], [1.0, 3.0]]])
+    b = np.array([[[1.0], [2.0]]])
+    a0, b0 = a.copy(), b.copy()
+    x = spd_solve(a, b)
+    assert np.array_equal(a, a0) and np.array_equal(b, b0)
+    assert np.allclose(a[0] @ x[0], b[0], rtol=1e-12, atol=1e-12)
+
+
+@pytest.mark.parametrize("n, p", [(1, 1), (1, 4), (2, 10), (7, 5)])
+def test_design_built_ring_by_ring_equals_the_whole_design(n, p):
+    """ring_fits with a Design (z built one ring at a time from the feature map,
+    never stored whole) == ring_fits with the materialised (N, p, K) design,
+    including groups of one centre and intercept-only models; Design.predict
+    == beta^T z."""
+    radius, d = 4, 9
+    rng = np.random.default_rng(n * 10 + p)
+    k = (2 * radius + 1) ** 2
+    t = rng.normal(size=(n, d, p - 1))
+    x = rng.normal(size=(n, d, k))
+    x[:, :, 0] = 0.0                                    # x_c - x_c
+    valid = (rng.random((n, k)) > 0.1).astype(float)
+    valid[:, 0] = 1.0
+    z = np.concatenate([np.ones((n, 1, k)), np.matmul(np.swapaxes(t, 1, 2), x) * valid[:, None]], axis=1)
+    _, y, w, s, beta0, xi0 = random_rings(n, radius, p, seed=p)
+    w *= valid
+    w[:, 0] = 1.0
+    whole = ring_fits(z, y, w, s, beta0, xi0, radius, 1e-3, keep_gram=True)
+    design = Design(t, x, valid)
+    rings = ring_fits(design, y, w, s, beta0, xi0, radius, 1e-3, keep_gram=True)
+    for name in ("beta", "xi_acc", "count", "gram"):
+        assert np.allclose(getattr(rings, name), getattr(whole, name), rtol=1e-9, atol=1e-12), name
+    beta = rng.normal(size=(n, 3, p))
+    assert np.allclose(design.predict(beta), np.matmul(beta, z), rtol=1e-12, atol=1e-12)
 
 
 def test_rls_with_tiny_delta_is_ordinary_least_squares():
@@ -339,6 +377,59 @@ def test_chunking_does_not_change_the_result():
     b = lp.reconstruct(buf, lp.Params(chunk=4096))
     assert np.allclose(a.image, b.image, rtol=1e-12, atol=1e-12)
     assert np.allclose(a.error, b.error, rtol=1e-12, atol=1e-15)
+
+
+def test_chunk_size_does_not_change_the_result_at_any_rank():
+    """Centres are sorted by model size inside a chunk and their design is
+    built ring by ring: any chunk size (1 centre, a few, all) gives the same
+    models and images to rounding, with every rank present and missing pixels."""
+    h, w = 36, 44
+    feats = scene_features(h, w, seed=42)
+    left, top = np.arange(w)[None, :, None] < 15, np.arange(h)[:, None, None] < 12
+    feats["albedo"] = np.where(left, 0.5, feats["albedo"])            # ranks from 2 to 8
+    feats["normal"] = np.where(top, [0.0, 0.0, 1.0], feats["normal"])
+    feats["depth"] = np.where(top & left, 3.0, feats["depth"])
+    truth = 0.6 * feats["albedo"] * (1 + 0.5 * np.sin(np.arange(w) / 3.0))[None, :, None]
+    buf = make_buffers(truth, feats, sigma=0.2, seed=44)
+    buf.n[5:8, 30:33] = 0
+    buf.k[5:8, 30:33] = 0
+    buf.color.mean[5:8, 30:33] = np.nan
+    color, var, fts, fvars = lp._inputs(buf)
+    fits = [lp.fit(color, var, fts, fvars, buf.n, lp.Params(chunk=c, radius=5), keep_models=True)
+            for c in (16, 37, 65536)]
+    a = fits[0]
+    assert len(np.unique(a.center_rank)) >= 3
+    for b in fits[1:]:
+        assert np.array_equal(a.centers, b.centers)
+        assert np.array_equal(a.center_radius, b.center_radius)
+        assert np.array_equal(a.center_rank, b.center_rank)
+        assert np.allclose(a.center_error, b.center_error, rtol=1e-9, atol=1e-15)
+        assert np.allclose(a.image, b.image, rtol=1e-9, atol=1e-12)
+        assert np.allclose(a.error, b.error, rtol=1e-9, atol=1e-15)
+        for key in ("beta", "P", "transform"):
+            assert np.allclose(a.models[key], b.models[key], rtol=1e-9, atol=1e-12), key
+
+
+def test_working_memory_per_pixel():
+    """Peak traced memory of one reconstruct (inputs excluded, as the benchmark
+    measures it): the padded planes and running sums (~250 bytes per pixel)
+    plus a workspace of ~80 KB per centre of a chunk and a few MB of per-chunk
+    temporaries; 192x192 with chunks of 32 centres takes ~395 bytes per pixel
+    (the layout before the workspace was reduced took ~560)."""
+    import tracemalloc
+    h = w = 192
+    feats = scene_features(h, w, seed=45)
+    buf = make_buffers(0.5 * feats["albedo"], feats, sigma=0.2, seed=46)
+    params = lp.Params(chunk=32)
+    tracemalloc.start()
+    try:
+        tracemalloc.reset_peak()
+        base = tracemalloc.get_traced_memory()[0]
+        lp.reconstruct(buf, params)
+        peak = tracemalloc.get_traced_memory()[1] - base
+    finally:
+        tracemalloc.stop()
+    assert peak / (h * w) < 450
 
 
 def test_literal_error_estimate_prefers_smaller_windows():
