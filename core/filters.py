@@ -43,6 +43,16 @@ def _finite(x, limit=VALUE_LIMIT, fill=0.0, dtype=np.float64):
     return out
 
 
+def _finite_or_self(x, limit=VALUE_LIMIT):
+    """``_finite(x)`` without the copy when x is float64 and already finite
+    within [-limit, limit] (the common case; the caller must not modify it)."""
+    x = np.asarray(x)
+    if x.dtype == np.float64 and np.isfinite(x).all() and (
+            x.size == 0 or (x.max() <= limit and x.min() >= -limit)):
+        return x
+    return _finite(x, limit)
+
+
 def _finite_var(v, limit=VAR_LIMIT, dtype=np.float64):
     """Variances (copy): NaN/negative -> 0, +inf and huge -> ``limit``."""
     with np.errstate(over="ignore", invalid="ignore"):
@@ -237,10 +247,12 @@ def guided_filter_mean(p: np.ndarray, guides: np.ndarray, radius: int, eps: floa
     of p, and the b terms summed before their box filter (the filter is
     linear in b).  Processed in row strips with a 2r halo (exact).
 
-    p : (H, W, C); guides : (H, W, G) -> (H, W, C) float64.
+    p : (H, W, C); guides : (H, W, G) -> (H, W, C) float64.  Inputs that are
+    already finite float64 are not copied (only the strips' temporaries and
+    the output are allocated).
     """
-    p = _finite(p)
-    g = _finite(guides)
+    p = _finite_or_self(p)
+    g = _finite_or_self(guides)
     if g.ndim == 2:
         g = g[..., None]
     h, w, c = p.shape
@@ -267,7 +279,7 @@ def guided_filter_mean(p: np.ndarray, guides: np.ndarray, radius: int, eps: floa
         ma = box_mean(a.reshape(hh, w, G * c), r).reshape(hh, w, G, c)
         q = ((ma * I[..., None]).sum(axis=2) + box_mean(bsum, r)) / G + pc
         out[y0:y1] = q[y0 - a0:y1 - a0]
-    return np.clip(out, -VALUE_LIMIT, VALUE_LIMIT)
+    return np.clip(out, -VALUE_LIMIT, VALUE_LIMIT, out=out)
 
 
 # ----------------------------------------------------------------------- NL-means

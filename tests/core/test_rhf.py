@@ -125,6 +125,27 @@ def test_hat_bias_variance_matches_dense_hat_matrix():
     np.testing.assert_allclose(var2[:, 0], var[:, 0], atol=1e-12)
 
 
+def test_hat_bias_variance_lean_and_cached_match_full():
+    """``lean`` (coefficients and bias^2, used by rhf_reconstruct) and a reused
+    (X^T W X + Lambda)^-1 give the same numbers as the full output."""
+    rng = np.random.default_rng(3)
+    n, P, K, B = 25, 6, 4, 3
+    X = np.concatenate([np.ones((B, n, 1)), rng.uniform(-1, 1, (B, n, P - 1))], axis=2)
+    w = rng.uniform(0, 1, (B, K, n))
+    Y, yp = rng.normal(size=(B, n, 3)), rng.normal(size=(B, n, 3))
+    v, u = rng.uniform(0, 2, (B, K, n)), rng.uniform(0, 2, (B, n))
+    pred, bias, var, noise = rhf.hat_bias_variance(X, w, Y, yp, v, 1e-3, pilot_var=u)
+    cache = {}
+    for _ in range(2):                       # first fills the cache, second reuses it
+        beta, b2, var2, noise2 = rhf.hat_bias_variance(X, w, Y, yp, v, 1e-3, pilot_var=u,
+                                                       cache=cache, lean=True)
+        assert cache["Ainv"].shape == (B, K, P, P)
+        np.testing.assert_allclose(np.einsum("bnp,bkpc->bknc", X, beta), pred, atol=1e-12)
+        np.testing.assert_allclose(b2, (bias ** 2).mean(-1), atol=1e-12)
+        np.testing.assert_allclose(var2, var, atol=1e-12)
+        np.testing.assert_allclose(noise2, noise, atol=1e-12)
+
+
 def test_hat_matrix_exact_for_linear_data_and_idempotent():
     rng = np.random.default_rng(1)
     n = 25
@@ -320,6 +341,33 @@ def test_iterations_and_options_run():
         res = run(buf, **kw)
         assert np.all(np.isfinite(res.image)) and np.all(np.isfinite(res.error)), kw
         assert mse(res.image) < 0.5 * base, kw
+
+
+@pytest.mark.parametrize("kw", [{}, {"iterations": 3, "bias_noise_correction": True}])
+def test_results_do_not_depend_on_chunking(monkeypatch, kw):
+    """Models are regressed in chunks (``chunk_centers`` centres for the
+    weights, at most ``CHUNK_PIXELS`` window pixels per regression); the
+    result must not depend on either (up to float rounding), including the
+    Eq. 12 error whose earlier-iteration terms are recomputed at k_opt."""
+    truth, buf = scene(40, 40, seed=3)
+    a = run(buf, **kw)
+    monkeypatch.setattr(rhf, "CHUNK_PIXELS", 300)
+    b = run(buf, chunk_centers=3, **kw)
+    assert a.info["models"] == b.info["models"]
+    np.testing.assert_array_equal(b.k_opt, a.k_opt)
+    np.testing.assert_allclose(b.image, a.image, rtol=1e-10, atol=1e-12)
+    # (the per-k variance maps of Eq. 11 are float32 sums: rounding ~1e-7)
+    np.testing.assert_allclose(b.error, a.error, rtol=1e-6, atol=1e-15)
+
+
+def test_reconstruct_accepts_callable_colour_variance():
+    truth, buf = scene(24, 24, seed=5)
+    feats, fvars = rhf._feature_arrays(buf)
+    v = buf.variance_of_mean()
+    a = rhf.rhf_reconstruct(buf.color.mean, v, feats, fvars, buf.n)
+    b = rhf.rhf_reconstruct(buf.color.mean, lambda: v, feats, fvars, buf.n)
+    np.testing.assert_array_equal(a.image, b.image)
+    np.testing.assert_array_equal(a.error, b.error)
 
 
 # ------------------------------------------------------------- special input
