@@ -271,6 +271,19 @@ def test_error_drops_well_below_input():
     assert 0.2 < res.error.mean() / true_err < 5          # estimate in the right range
 
 
+def test_input_weight_pulls_toward_the_input_monotonically():
+    """Eq. 13 with the pixel's own input at weight ``input_weight`` (our
+    guard against extrapolated predictions): the further from 0, the closer
+    the output to the input; 0 is the paper's Eq. 13 and stays finite."""
+    truth, buf = scene(40, 40, seed=2)
+    dist = []
+    for iw in (0.0, 0.001, 0.02, 0.2, 1.0):
+        res = rhf.reconstruct(buf, rhf.Params(input_weight=iw))
+        assert np.isfinite(res.image).all() and np.isfinite(res.error).all()
+        dist.append(float(np.abs(res.image - buf.color.mean).mean()))
+    assert all(a > b for a, b in zip(dist, dist[1:]))
+
+
 def test_more_samples_less_error():
     errs = []
     for spp in (2, 32):
@@ -335,7 +348,10 @@ def test_iterations_and_options_run():
     mse = lambda x: float(((x - truth) ** 2).mean())
     base = mse(buf.color.mean)
     for kw in ({"iterations": 1}, {"iterations": 3}, {"regress_guide": True},
-               {"regression_sigma_s": 2.0}, {"fill_rounds": 0, "coverage_weight": 0.0},
+               # a spatial term makes every regression weight small, so the
+               # input weight (0.02 by default) must shrink with them
+               {"regression_sigma_s": 2.0, "input_weight": 0.001},
+               {"fill_rounds": 0, "coverage_weight": 0.0},
                {"bandwidths": "2.0"}, {"patch_radius": 0, "feature_radius": 0,
                                         "guided_radius": 0}, {"bias_noise_correction": True}):
         res = run(buf, **kw)
