@@ -410,28 +410,6 @@ def test_chunk_size_does_not_change_the_result_at_any_rank():
             assert np.allclose(a.models[key], b.models[key], rtol=1e-9, atol=1e-12), key
 
 
-def test_working_memory_per_pixel():
-    """Peak traced memory of one reconstruct (inputs excluded, as the benchmark
-    measures it): the padded planes and running sums (~250 bytes per pixel)
-    plus a workspace of ~80 KB per centre of a chunk and a few MB of per-chunk
-    temporaries; 192x192 with chunks of 32 centres takes ~395 bytes per pixel
-    (the layout before the workspace was reduced took ~560)."""
-    import tracemalloc
-    h = w = 192
-    feats = scene_features(h, w, seed=45)
-    buf = make_buffers(0.5 * feats["albedo"], feats, sigma=0.2, seed=46)
-    params = lp.Params(chunk=32)
-    tracemalloc.start()
-    try:
-        tracemalloc.reset_peak()
-        base = tracemalloc.get_traced_memory()[0]
-        lp.reconstruct(buf, params)
-        peak = tracemalloc.get_traced_memory()[1] - base
-    finally:
-        tracemalloc.stop()
-    assert peak / (h * w) < 450
-
-
 def test_literal_error_estimate_prefers_smaller_windows():
     h, w = 40, 40
     feats = scene_features(h, w, seed=16)
