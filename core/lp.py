@@ -119,10 +119,11 @@ class Params:
         "help": "subtract the test pixels' variance from the Eq. 5/7 errors so they estimate the "
                 "error against the truth like xi(k(0)); off = literal paper (filters far less)",
         "min": 0, "max": 1})
-    chunk: int = field(default=256, metadata={
-        "help": "centre pixels processed per vectorised batch: larger has less Python overhead "
-                "but uses ~80 KB more memory per centre",
-        "min": 16, "max": 65536})
+    chunk: int = field(default=0, metadata={
+        "help": "centre pixels processed per vectorised batch (0 = auto: pixels / 1024, "
+                "between 32 and 256, so the workspace stays under ~80 bytes per pixel); "
+                "larger has less Python overhead but uses ~80 KB more memory per centre",
+        "min": 0, "max": 65536})
 
     @classmethod
     def from_dict(cls, values):
@@ -345,6 +346,13 @@ def _box_sum(plane: np.ndarray, r: int, out: np.ndarray | None = None) -> np.nda
     return np.maximum(out, 0.0, out=out)
 
 
+def auto_chunk(pixels: int) -> int:
+    """``Params.chunk = 0``: centres per batch, pixels / 1024 clamped to
+    32..256 (workspace ~80 KB per centre, i.e. at most ~80 B per pixel above
+    32 x 1024 pixels)."""
+    return int(min(256, max(32, int(pixels) // 1024)))
+
+
 class _Workspace:
     """Scratch arrays reused by every chunk: allocating fresh multi-megabyte
     temporaries per chunk costs more than the arithmetic (page faults).
@@ -522,7 +530,7 @@ def fit(color: np.ndarray, color_var: np.ndarray, features: dict, feature_var: d
     three passes), running sums (88 bytes per pixel) and one workspace reused
     by every chunk (``_Workspace``), about
     ``chunk * 8 * (2 K max(D, 8) + 16 R (D + 4) + (R+1) (D+4)^2)`` bytes
-    (K = (2R+1)^2; 20.6 MB for the default chunk of 256), plus per-chunk
+    (K = (2R+1)^2; 20.6 MB for a chunk of 256), plus per-chunk
     temporaries of a few MB.  The window planes are gathered straight into
     the workspace, the design ``z`` is built one ring at a time
     (:class:`core.lp_solve.Design`), centres are sorted by model size so each
@@ -530,8 +538,10 @@ def fit(color: np.ndarray, color_var: np.ndarray, features: dict, feature_var: d
     of the means) are dropped before the fit.  Measured peak (tracemalloc, one
     :func:`reconstruct`, inputs excluded, all passes, default parameters):
     about 360 bytes per pixel at 512x512 (370 on a textured scene of rank 8),
-    280 at 1024x1024 (the workspace is a fixed ~20 MB, so small images cost
-    more per pixel: ~680 at 256x256).
+    280 at 1024x1024.  The automatic chunk (``chunk = 0``: pixels / 1024,
+    clamped to 32..256) keeps the workspace under ~80 bytes per pixel, so
+    small images do not pay a fixed 20 MB (a chunk of 256 cost ~680 bytes per
+    pixel at 256x256; the automatic 64 ~400, ~25 % slower there).
     Chunks are also limited to a band of rows so their scatter stays local.
     """
     params = params or Params()
@@ -556,7 +566,8 @@ def _fit_frame(frame: _Frame, params: Params, keep_models: bool = False) -> LPFi
     h, w = frame.h, frame.w
     radius = int(params.radius)
     k = (2 * radius + 1) ** 2
-    chunk = max(1, min(int(params.chunk), h * w))
+    chunk = int(params.chunk) if int(params.chunk) > 0 else auto_chunk(h * w)
+    chunk = max(1, min(chunk, h * w))
     ws = _Workspace(chunk, k, frame.dim, radius)
     acc = _Accumulator(frame)
     covered = np.zeros((h, w), bool)

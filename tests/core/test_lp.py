@@ -379,6 +379,17 @@ def test_chunking_does_not_change_the_result():
     assert np.allclose(a.error, b.error, rtol=1e-12, atol=1e-15)
 
 
+def test_automatic_chunk_follows_the_image_size():
+    assert [lp.auto_chunk(p) for p in (1, 40 * 40, 256 * 256, 512 * 512, 4096 * 4096)] == \
+        [32, 32, 64, 256, 256]
+    h, w = 24, 20
+    feats = scene_features(h, w, seed=11)
+    buf = make_buffers(0.6 * feats["albedo"], feats, sigma=0.2, seed=12)
+    a = lp.reconstruct(buf)                       # chunk 0: automatic (32)
+    b = lp.reconstruct(buf, lp.Params(chunk=32))
+    np.testing.assert_array_equal(a.image, b.image)
+
+
 def test_chunk_size_does_not_change_the_result_at_any_rank():
     """Centres are sorted by model size inside a chunk and their design is
     built ring by ring: any chunk size (1 centre, a few, all) gives the same
