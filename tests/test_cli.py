@@ -96,8 +96,15 @@ def _exr_arrays(path):
     return imageio.read_layers(path)[0]
 
 
+def _default_sigint():
+    # a test run started in the background (e.g. `bash .ci/run &`) inherits
+    # SIGINT ignored, and so would the CLI; a terminal's Ctrl-C is what we test
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
+
+
 def _start(args):
-    return subprocess.Popen([CLI, *args], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=ENV)
+    return subprocess.Popen([CLI, *args], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=ENV,
+                            preexec_fn=_default_sigint)
 
 
 def _wait_for(proc, needle, timeout=300):
