@@ -72,7 +72,8 @@ Stein's unbiased risk estimate of each soft-thresholded coefficient,
 ``sigma_w^2 - 2 sigma_w^2 [|w| <= t] + min(w^2, t^2)`` with ``t = c_s Delta`` and
 ``sigma_w^2`` the coefficient's actual variance ``<Var(mean), Psi^2>`` (natural
 squared filters; obtained from ``Delta^2`` by dividing out the renormalisation
-and, with ``recon_variance = "range"``, ``d2(N)^2``, the latter as its ``Psi^2``-weighted mean over the support when
+and, with ``recon_variance = "range"``, ``d2(N)^2``, the latter as its
+``Psi^2``-weighted mean over the support when
 ``N`` varies, which is exact where ``N`` is locally constant and saves one
 transform per channel), plus the variance of the untouched coarse coefficients,
 propagated to pixels by a synthesis with squared synthesis filters (coefficient
@@ -136,26 +137,20 @@ from __future__ import annotations
 import math
 import os
 from concurrent.futures import ThreadPoolExecutor
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from functools import lru_cache
 
 import numpy as np
 
 from . import wavelets as wv
 from .buffers import Buffers, LUMA
-from .method import MethodResult, allocate
+from .method import MethodResult, allocate, param
 
 PASSES: tuple = ()
 
 _BIG_VALUE = 1e100
 _BIG_VAR = 1e200
 _MAD_SCALE = 0.6744897501960817  # Phi^-1(3/4)
-
-
-def _f(default, help_, lo=None, hi=None, **extra):
-    md = {"help": help_, "min": lo, "max": hi}
-    md.update(extra)
-    return field(default=default, metadata=md)
 
 
 @dataclass
@@ -165,42 +160,42 @@ class Params:
     sampling variance filters renormalised to 1.05 and reconstruction variance
     filters to 2^-1/2")."""
 
-    wavelet: str = _f(
+    wavelet: str = param(
         "cdf97", "Filter bank: cdf97 (paper default, smoothest), legall53 (faster, some "
         "artifacts) or haar (fastest, blocky); speed vs smoothness (Fig. 8)",
         choices=("cdf97", "legall53", "haar"))
-    smoothing: float = _f(
+    smoothing: float = param(
         1.0, "c_s of Eq. 11: threshold = c_s x coefficient error; larger removes more "
         "noise but may ring or blur edges", 0.0, 10.0)
-    recon_filter_sum: float = _f(
+    recon_filter_sum: float = param(
         2.0 ** -0.5, "Sum of the squared reconstruction filters (paper 2^-1/2); lower damps "
         "smoothing at coarse levels (fewer artifacts, more low-frequency noise)", 0.01, 2.0)
-    sample_filter_sum: float = _f(
+    sample_filter_sum: float = param(
         1.05, "Sum of the squared sampler low-pass filter (Eq. 9, paper 1.05); above 1 "
         "sends samples to coarser levels", 0.5, 2.0)
-    levels: int = _f(
+    levels: int = param(
         0, "Wavelet levels for reconstruction, 0 = full depth (paper); fewer levels are "
         "slightly faster but leave low-frequency noise", 0, 30)
-    sample_levels: int = _f(
+    sample_levels: int = param(
         5, "Coarsest scale-coefficient level the sampler considers (paper 0..5); more "
         "levels allow coarser, smoother sampling", 0, 12)
-    batch_base: int = _f(
+    batch_base: int = param(
         64, "Samples per chosen coefficient are batch_base x 2^level (paper 64); larger "
         "batches adapt less finely but plan faster", 1, 1 << 20)
-    rounds: int = _f(
+    rounds: int = param(
         16, "Priority updates per render iteration (paper: after every coefficient); "
         "more rounds follow the paper more closely at O(pixels) cost each", 1, 4096)
-    recon_variance: str = _f(
+    recon_variance: str = param(
         "sample", "sigma^2(F) of Eq. 10 (reconstruction thresholds): sample (the per-sample "
         "variance from the sample subsets, default: threshold = c_s standard deviations) or "
         "range (the paper's (I_max - I_min)^2 bound, d2(N)^2 x larger: much smoother, "
         "erases texture)", choices=("sample", "range"))
-    sampler_intensity: float = _f(
+    sampler_intensity: float = param(
         0.5, "Median luminance the sampler maps the image to before Eq. 8; higher weighs "
         "edges (wavelet magnitude) more against variance", 1e-3, 1e3)
-    seed: int = _f(0, "Seed for breaking ties between equal priorities (reproducibility only)",
-                   0, 2 ** 31 - 1)
-    threads: int = _f(
+    seed: int = param(0, "Seed for breaking ties between equal priorities (reproducibility only)",
+                      0, 2 ** 31 - 1)
+    threads: int = param(
         0, "Worker threads for the per-channel transforms (0 = one per core, at most 3); "
         "speed only", 0, 64)
 
@@ -569,15 +564,6 @@ def wavelet_reconstruct(mean: np.ndarray, var: np.ndarray, n, params: Params | N
     return MethodResult(image, err, info)
 
 
-def _variance_of_mean(buf: Buffers) -> np.ndarray:
-    """``M2 / ((k - 1) n)`` per channel (``Buffers.variance_of_mean`` in one
-    pass); ``+inf`` or NaN (both: unknown) where ``k < 2`` or ``n = 0``."""
-    den = (buf.k - 1.0) * buf.n
-    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
-        inv = np.where((buf.k >= 2) & (buf.n > 0), 1.0 / np.where(den > 0, den, 1.0), np.inf)
-        return buf.color.m2 * inv[..., None]
-
-
 def reconstruct(buf: Buffers, params: Params | None = None) -> MethodResult:
     """AWR reconstruction of the accumulated samples (Sec. 4.2, Eq. 7, 10, 11).
 
@@ -594,7 +580,7 @@ def reconstruct(buf: Buffers, params: Params | None = None) -> MethodResult:
     wavelet coefficients that are zero after Eq. 11, ``missing_pixels``,
     ``unknown_variance_pixels``).
     """
-    return wavelet_reconstruct(buf.color.mean, _variance_of_mean(buf), buf.n, params)
+    return wavelet_reconstruct(buf.color.mean, buf.variance_of_mean(), buf.n, params)
 
 
 def denoise(color: np.ndarray, color_var: np.ndarray, features: dict | None = None,
@@ -628,7 +614,7 @@ class _SamplerInputs:
 
 def _sampler_inputs(buf: Buffers, params: Params) -> _SamplerInputs:
     bank = wv.get_bank(params.wavelet)
-    prep = _prepare(buf.color.mean, _variance_of_mean(buf), buf.n, bank)
+    prep = _prepare(buf.color.mean, buf.variance_of_mean(), buf.n, bank)
     h, w = prep.n.shape
     levels = min(int(params.sample_levels), wv.max_levels((h, w)))
     s2 = np.minimum(prep.var * np.maximum(prep.n, 1.0)[..., None], _BIG_VAR)

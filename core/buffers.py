@@ -191,11 +191,15 @@ class Buffers:
         return v
 
     def variance_of_mean(self, stat: Stat | None = None) -> np.ndarray:
-        """Variance of the pixel mean, s^2 / n; +inf where k < 2 or n = 0."""
-        s2 = self.sample_variance(stat)
-        n = self.n[..., None]
-        with np.errstate(divide="ignore", invalid="ignore"):
-            return np.where(n > 0, s2 / np.where(n > 0, n, 1.0), np.inf)
+        """Variance of the pixel mean, s^2 / n = M2 / ((k - 1) n); +inf where
+        k < 2 or n = 0 (a NaN M2 stays NaN).  One (H, W, C) allocation: the
+        methods call it on full frames."""
+        stat = self.color if stat is None else stat
+        ok = (self.k >= 2) & (self.n > 0)
+        den = np.where(ok, (self.k - 1.0) * self.n, 1.0)[..., None]
+        out = np.full(stat.m2.shape, np.inf)
+        np.divide(stat.m2, den, out=out, where=ok[..., None])
+        return out
 
     def feature(self, name: str) -> np.ndarray:
         return self.features[name].mean

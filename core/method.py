@@ -95,6 +95,15 @@ def allocate(weights: np.ndarray, budget: int, cap: np.ndarray | None = None) ->
     return out
 
 
+def param(default, help_: str, lo=None, hi=None, **extra):
+    """A ``Params`` dataclass field with the metadata the panel, the CLI and
+    :func:`params_from_dict` read: ``help``, ``min``, ``max`` and any extra
+    keys (e.g. ``choices``)."""
+    md = {"help": help_, "min": lo, "max": hi}
+    md.update(extra)
+    return field(default=default, metadata=md)
+
+
 def params_from_dict(cls, values: dict | None):
     """Build a ``Params`` dataclass from a dict, ignoring unknown keys, and
     checking each value against the field's ``min``/``max`` metadata."""

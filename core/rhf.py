@@ -49,14 +49,14 @@ Special inputs
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 
 from .buffers import Buffers
 from .filters import (VALUE_LIMIT, VAR_LIMIT, box_sum, guided_filter, guided_filter_mean,
                       nlm_center_weights, nlm_filter, sobel_gradient, window_offsets)
-from .method import MethodResult, allocate, relative_error
+from .method import MethodResult, allocate, param, relative_error
 
 PASSES = ("normal", "albedo", "depth")
 
@@ -68,75 +68,71 @@ FEATURE_LIMIT = 1e6
 FEATURE_ORDER = (("normal", 3), ("albedo", 3), ("depth", 1))
 
 
-def _p(default, help_, lo=None, hi=None):
-    return field(default=default, metadata={"help": help_, "min": lo, "max": hi})
-
-
 @dataclass
 class Params:
     """RHF parameters; defaults are the paper's (Liu et al. 2018, Sec. 3-4)
     where it gives them, otherwise the documented choices."""
 
-    bandwidths: str = _p("1.0,1.5,2.0,3.5,4.0",
-                         "candidate NL-means strengths k (Sec. 3.4, comma list); more candidates "
-                         "= finer bias/variance choice, proportionally slower")
-    iterations: int = _p(2, "T, iterations of the bias/variance estimate (Eq. 12); 3 gives slightly "
-                            "less noisy error estimates, each costs one more regression pass", 1, 5)
-    radius_small: int = _p(5, "r_s, window radius for patches with fine detail (Sec. 3.5); smaller "
-                              "keeps detail, more models = slower", 1, 64)
-    radius_medium: int = _p(10, "r_m, window radius of models filling uncovered pixels (Sec. 3.5)",
-                            1, 64)
-    radius_large: int = _p(15, "r_l, patch radius and window radius of smooth patches (Sec. 3.5); "
-                               "larger = fewer models (faster), more smoothing", 1, 64)
-    edge_threshold: float = _p(0.4, "tau: a pixel whose feature Sobel gradient (Eq. 14) exceeds it "
-                                    "is high-frequency; lower = more small windows (slower, sharper)",
-                               0.0, 1e6)
-    detail_min_pixels: int = _p(1, "a patch with at least this many high-frequency pixels gets the "
-                                   "small radius r_s (num > tau, Sec. 3.5)", 1, 1 << 20)
-    patch_radius: int = _p(3, "r, NL-means patch radius (Eq. 4); larger = more robust distances, "
-                              "cost grows with (2r+1)^2", 0, 10)
-    sigma_s: float = _p(2.0, "spatial sigma of the feature NL-means (Eq. 3)", 0.0, 100.0)
-    sigma_r: float = _p(1.0, "patch-range sigma of the NL-means kernels (Eq. 3)", 1e-6, 100.0)
-    sigma_normal: float = _p(0.8, "sigma_m of the normal term of the joint feature kernel (Eq. 3)",
-                             1e-6, 100.0)
-    sigma_albedo: float = _p(0.25, "sigma_m of the albedo term of the joint feature kernel (Eq. 3)",
-                             1e-6, 100.0)
-    sigma_depth: float = _p(0.6, "sigma_m of the depth term (depth scaled to the scene's 99th "
-                                 "percentile, Eq. 3)", 1e-6, 100.0)
-    feature_k: float = _p(0.25, "k of the feature NL-means (Eq. 7); larger = smoother features",
-                          1e-3, 100.0)
-    feature_radius: int = _p(4, "search radius of the feature NL-means (2 sigma_s; the paper does "
-                                "not say); larger = smoother features, cost ~ (2r+1)^2", 0, 16)
-    guided_radius: int = _p(1, "window radius of the guided filters (Eq. 6-8; not given in the "
-                               "paper); larger = smoother guide colour M, more bias", 0, 32)
-    guided_eps: float = _p(0.001, "regularisation of the guided filter (Eq. 6, paper 0.001); larger "
-                                  "= flatter a, more smoothing", 1e-12, 1e3)
-    regression_sigma_s: float = _p(0.0, "spatial sigma of the regression weights NLM(M,k,false); 0 "
-                                        "= none (the window bounds the support)", 0.0, 100.0)
-    regress_guide: bool = _p(False, "fit the guide colour M (Eq. 8) instead of the input colour "
-                                    "(Eq. 2); less variance, but M's blur at colour-only edges is "
-                                    "bias the error estimate cannot see")
-    bias_noise_correction: bool = _p(False, "subtract the pilot's noise from the Eq. 11 bias "
-                                            "estimate (not in the paper): flat noisy regions then "
-                                            "choose large k", None, None)
-    ridge: float = _p(1e-3, "Tikhonov regularisation of the gradient terms relative to the total "
-                            "weight (guards singular systems); larger = more stable, more bias",
-                      1e-9, 1.0)
-    nlm_eps: float = _p(1e-10, "epsilon of the NL-means distance (Eq. 5)", 1e-300, 1.0)
-    coverage_weight: float = _p(0.01, "a pixel counts as covered when some model's regression "
-                                      "weight for it at the smallest k reaches this; uncovered "
-                                      "pixels get r_m models (Sec. 3.5). Higher = more models, "
-                                      "slower, fewer extrapolated predictions", 0.0, 1.0)
-    fill_rounds: int = _p(4, "rounds of r_m models for uncovered pixels (Sec. 3.5); 0 = only the "
-                             "geometric cover", 0, 16)
-    input_weight: float = _p(0.02, "weight of each pixel's own input colour in the Eq. 13 average "
-                                   "(not in the paper): pixels that the models weight weakly (their "
-                                   "predictions there are extrapolations) lean on their unbiased "
-                                   "input; 0 = pure Eq. 13, higher = closer to the input", 0.0, 1.0)
-    chunk_centers: int = _p(32, "model centres processed together (at most CHUNK_PIXELS window "
-                                "pixels per chunk); larger = faster, more memory; results do "
-                                "not depend on it",
-                            1, 4096)
+    bandwidths: str = param("1.0,1.5,2.0,3.5,4.0",
+                           "candidate NL-means strengths k (Sec. 3.4, comma list); more candidates "
+                           "= finer bias/variance choice, proportionally slower")
+    iterations: int = param(2, "T, iterations of the bias/variance estimate (Eq. 12); 3 gives slightly "
+                              "less noisy error estimates, each costs one more regression pass", 1, 5)
+    radius_small: int = param(5, "r_s, window radius for patches with fine detail (Sec. 3.5); smaller "
+                                "keeps detail, more models = slower", 1, 64)
+    radius_medium: int = param(10, "r_m, window radius of models filling uncovered pixels (Sec. 3.5)",
+                              1, 64)
+    radius_large: int = param(15, "r_l, patch radius and window radius of smooth patches (Sec. 3.5); "
+                                 "larger = fewer models (faster), more smoothing", 1, 64)
+    edge_threshold: float = param(0.4, "tau: a pixel whose feature Sobel gradient (Eq. 14) exceeds it "
+                                      "is high-frequency; lower = more small windows (slower, sharper)",
+                                 0.0, 1e6)
+    detail_min_pixels: int = param(1, "a patch with at least this many high-frequency pixels gets the "
+                                     "small radius r_s (num > tau, Sec. 3.5)", 1, 1 << 20)
+    patch_radius: int = param(3, "r, NL-means patch radius (Eq. 4); larger = more robust distances, "
+                                "cost grows with (2r+1)^2", 0, 10)
+    sigma_s: float = param(2.0, "spatial sigma of the feature NL-means (Eq. 3)", 0.0, 100.0)
+    sigma_r: float = param(1.0, "patch-range sigma of the NL-means kernels (Eq. 3)", 1e-6, 100.0)
+    sigma_normal: float = param(0.8, "sigma_m of the normal term of the joint feature kernel (Eq. 3)",
+                               1e-6, 100.0)
+    sigma_albedo: float = param(0.25, "sigma_m of the albedo term of the joint feature kernel (Eq. 3)",
+                               1e-6, 100.0)
+    sigma_depth: float = param(0.6, "sigma_m of the depth term (depth scaled to the scene's 99th "
+                                   "percentile, Eq. 3)", 1e-6, 100.0)
+    feature_k: float = param(0.25, "k of the feature NL-means (Eq. 7); larger = smoother features",
+                            1e-3, 100.0)
+    feature_radius: int = param(4, "search radius of the feature NL-means (2 sigma_s; the paper does "
+                                  "not say); larger = smoother features, cost ~ (2r+1)^2", 0, 16)
+    guided_radius: int = param(1, "window radius of the guided filters (Eq. 6-8; not given in the "
+                                 "paper); larger = smoother guide colour M, more bias", 0, 32)
+    guided_eps: float = param(0.001, "regularisation of the guided filter (Eq. 6, paper 0.001); larger "
+                                    "= flatter a, more smoothing", 1e-12, 1e3)
+    regression_sigma_s: float = param(0.0, "spatial sigma of the regression weights NLM(M,k,false); 0 "
+                                          "= none (the window bounds the support)", 0.0, 100.0)
+    regress_guide: bool = param(False, "fit the guide colour M (Eq. 8) instead of the input colour "
+                                      "(Eq. 2); less variance, but M's blur at colour-only edges is "
+                                      "bias the error estimate cannot see")
+    bias_noise_correction: bool = param(False, "subtract the pilot's noise from the Eq. 11 bias "
+                                              "estimate (not in the paper): flat noisy regions then "
+                                              "choose large k", None, None)
+    ridge: float = param(1e-3, "Tikhonov regularisation of the gradient terms relative to the total "
+                              "weight (guards singular systems); larger = more stable, more bias",
+                        1e-9, 1.0)
+    nlm_eps: float = param(1e-10, "epsilon of the NL-means distance (Eq. 5)", 1e-300, 1.0)
+    coverage_weight: float = param(0.01, "a pixel counts as covered when some model's regression "
+                                        "weight for it at the smallest k reaches this; uncovered "
+                                        "pixels get r_m models (Sec. 3.5). Higher = more models, "
+                                        "slower, fewer extrapolated predictions", 0.0, 1.0)
+    fill_rounds: int = param(4, "rounds of r_m models for uncovered pixels (Sec. 3.5); 0 = only the "
+                               "geometric cover", 0, 16)
+    input_weight: float = param(0.02, "weight of each pixel's own input colour in the Eq. 13 average "
+                                     "(not in the paper): pixels that the models weight weakly (their "
+                                     "predictions there are extrapolations) lean on their unbiased "
+                                     "input; 0 = pure Eq. 13, higher = closer to the input", 0.0, 1.0)
+    chunk_centers: int = param(32, "model centres processed together (at most CHUNK_PIXELS window "
+                                  "pixels per chunk); larger = faster, more memory; results do "
+                                  "not depend on it",
+                              1, 4096)
 
 
 def parse_bandwidths(text) -> np.ndarray:
@@ -1075,22 +1071,12 @@ def rhf_reconstruct(color, color_var, feats, feat_var, n=None, params: Params | 
 
 
 # ------------------------------------------------------------- method interface
-def _variance_of_mean(buf: Buffers, stat) -> np.ndarray:
-    """``Buffers.variance_of_mean(stat)`` (M2 / ((k - 1) n), +inf where k < 2
-    or n = 0, NaN M2 stays NaN) with one (H, W, C) allocation."""
-    den = (buf.k - 1.0) * buf.n
-    ok = (buf.k >= 2) & (buf.n > 0)
-    out = np.full(stat.m2.shape, np.inf)
-    np.divide(stat.m2, np.where(ok, den, 1.0)[..., None], out=out, where=ok[..., None])
-    return out
-
-
 def _feature_arrays(buf: Buffers):
     feats, fvars = {}, {}
     for name, _ in FEATURE_ORDER:
         if name in buf.features:
             feats[name] = buf.feature(name)
-            fvars[name] = (lambda st=buf.features[name]: _variance_of_mean(buf, st))
+            fvars[name] = (lambda st=buf.features[name]: buf.variance_of_mean(st))
     return feats, fvars
 
 
@@ -1104,7 +1090,7 @@ def reconstruct(buf: Buffers, params: Params | None = None) -> MethodResult:
     """
     params = params or Params()
     feats, fvars = _feature_arrays(buf)
-    cvar = [_variance_of_mean(buf, buf.color)]
+    cvar = [buf.variance_of_mean()]
     zero = np.isfinite(buf.color.mean)
     zero &= cvar[0] == 0                   # k >= 2, n > 0 and M2 = 0 (cvar is inf otherwise)
     # handed over as a callable (list.pop) so that rhf_reconstruct holds the

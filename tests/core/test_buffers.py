@@ -28,6 +28,25 @@ def test_m2_is_between_group_sum_of_squares():
     np.testing.assert_allclose(buf.color.m2, expect, rtol=1e-10, atol=1e-12)
 
 
+def test_variance_of_mean_is_sample_variance_over_n_with_edge_cases():
+    """M2 / ((k - 1) n) in one allocation equals s^2 / n; +inf where k < 2 or
+    n = 0, a NaN M2 stays NaN, for colour and feature stats."""
+    rng = np.random.default_rng(3)
+    groups = _groups(rng)
+    feats = [{"albedo": g.mean(0) * 0.5} for g in groups]
+    buf = Buffers.from_subsets([g.mean(0) for g in groups], [len(g) for g in groups], feats)
+    buf.k[:2] = 1
+    buf.n[3, 4] = 0
+    buf.color.m2[4, 1] = np.nan
+    for stat in (buf.color, buf.features["albedo"]):
+        v = buf.variance_of_mean(stat)
+        s2 = buf.sample_variance(stat)
+        expect = np.where(buf.n[..., None] > 0, s2 / np.maximum(buf.n, 1.0)[..., None], np.inf)
+        np.testing.assert_allclose(v, expect, rtol=1e-14)
+        assert np.isinf(v[:2]).all() and np.isinf(v[3, 4]).all()
+    assert np.isnan(buf.variance_of_mean()[4, 1]).all()
+
+
 def test_merge_of_accumulated_buffers_equals_sequential_merge():
     rng = np.random.default_rng(2)
     groups = _groups(rng, sizes=(2, 3, 1, 5, 4))
