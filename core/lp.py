@@ -64,13 +64,13 @@ Choices where the paper leaves room (each also stated where it is made):
 """
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 
 from .buffers import Buffers
 from .lp_solve import Design, ring_fits, ring_layout
-from .method import MethodResult, allocate, params_from_dict
+from .method import MethodResult, allocate, param, params_from_dict
 
 PASSES = ("normal", "albedo", "depth")
 ADAPTIVE = True
@@ -87,43 +87,34 @@ _HUGE = 1e150
 class Params:
     """Parameters of LP with the paper's defaults (Moon et al. 2015, Sec. 7)."""
 
-    radius: int = field(default=9, metadata={
-        "help": "half width R of the filtering window (paper: 9, i.e. 19x19): the largest prediction "
-                "window; larger smooths more and costs ~R^2 more time per centre",
-        "min": 1, "max": 15})
-    granularity: int = field(default=0, metadata={
-        "help": "spacing g of the first centre-pixel grid (Sec. 5.1), halved each pass; 0 = window "
-                "width 2R+1 (paper); larger tries fewer, bigger models first (faster, maybe coarser)",
-        "min": 0, "max": 256})
-    delta: float = field(default=1e-3, metadata={
-        "help": "RLS initial confidence delta, P(0) = I/delta (paper: 0.001); larger regularises "
-                "the models towards the centre value (stabler, more biased)",
-        "min": 1e-9, "max": 1.0})
-    epsilon: float = field(default=1e-3, metadata={
-        "help": "epsilon of the relative error xi/(f^2 + epsilon) that drives adaptive sampling "
-                "(paper: 0.001); larger sends fewer samples to dark pixels",
-        "min": 1e-8, "max": 1.0})
-    svd_floor: float = field(default=0.01, metadata={
-        "help": "constant part of the truncated-SVD threshold on normalised feature singular values "
-                "(Moon 2014: 0.01); larger drops more feature directions (faster, less detail)",
-        "min": 0.0, "max": 10.0})
-    svd_noise_factor: float = field(default=2.0, metadata={
-        "help": "TSVD threshold multiple of the feature-noise spectral norm (Moon 2014: 2); larger "
-                "ignores noisier features (robust to DoF/motion noise, may lose edges)",
-        "min": 0.0, "max": 100.0})
-    min_rank: int = field(default=2, metadata={
-        "help": "feature directions always kept by the TSVD (Moon 2014: 2, the screen plane); "
-                "smaller gives smaller, faster but blurrier models",
-        "min": 0, "max": 9})
-    variance_corrected: bool = field(default=True, metadata={
-        "help": "subtract the test pixels' variance from the Eq. 5/7 errors so they estimate the "
-                "error against the truth like xi(k(0)); off = literal paper (filters far less)",
-        "min": 0, "max": 1})
-    chunk: int = field(default=0, metadata={
-        "help": "centre pixels processed per vectorised batch (0 = auto: pixels / 1024, "
-                "between 32 and 256, so the workspace stays under ~80 bytes per pixel); "
-                "larger has less Python overhead but uses ~80 KB more memory per centre",
-        "min": 0, "max": 65536})
+    radius: int = param(
+        9, "half width R of the filtering window (paper: 9, i.e. 19x19): the largest prediction "
+        "window; larger smooths more and costs ~R^2 more time per centre", 1, 15)
+    granularity: int = param(
+        0, "spacing g of the first centre-pixel grid (Sec. 5.1), halved each pass; 0 = window "
+        "width 2R+1 (paper); larger tries fewer, bigger models first (faster, maybe coarser)", 0, 256)
+    delta: float = param(
+        1e-3, "RLS initial confidence delta, P(0) = I/delta (paper: 0.001); larger regularises "
+        "the models towards the centre value (stabler, more biased)", 1e-9, 1.0)
+    epsilon: float = param(
+        1e-3, "epsilon of the relative error xi/(f^2 + epsilon) that drives adaptive sampling "
+        "(paper: 0.001); larger sends fewer samples to dark pixels", 1e-8, 1.0)
+    svd_floor: float = param(
+        0.01, "constant part of the truncated-SVD threshold on normalised feature singular values "
+        "(Moon 2014: 0.01); larger drops more feature directions (faster, less detail)", 0.0, 10.0)
+    svd_noise_factor: float = param(
+        2.0, "TSVD threshold multiple of the feature-noise spectral norm (Moon 2014: 2); larger "
+        "ignores noisier features (robust to DoF/motion noise, may lose edges)", 0.0, 100.0)
+    min_rank: int = param(
+        2, "feature directions always kept by the TSVD (Moon 2014: 2, the screen plane); "
+        "smaller gives smaller, faster but blurrier models", 0, 9)
+    variance_corrected: bool = param(
+        True, "subtract the test pixels' variance from the Eq. 5/7 errors so they estimate the "
+        "error against the truth like xi(k(0)); off = literal paper (filters far less)", 0, 1)
+    chunk: int = param(
+        0, "centre pixels processed per vectorised batch (0 = auto: pixels / 1024, "
+        "between 32 and 256, so the workspace stays under ~80 bytes per pixel); "
+        "larger has less Python overhead but uses ~80 KB more memory per centre", 0, 65536)
 
     @classmethod
     def from_dict(cls, values):

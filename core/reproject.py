@@ -169,7 +169,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from .buffers import Buffers, Stat, luminance
-from .method import MethodResult
+from .method import MethodResult, param
 
 #: passes the reprojection reads (position is required, the rest are optional)
 PASSES = ("position", "depth", "glossy", "transmission", "object_index")
@@ -188,54 +188,45 @@ FAR_DEPTH = 1e9
 class Params:
     """Validation thresholds (thesis Sec. 3.2-3.3; see the module docstring)."""
 
-    max_error: float = field(default=1.0 / 256.0, metadata={
-        "help": "Algorithm 2's maximum reprojection error epsilon (thesis: 1/256), absolute in image "
-                "units: the Eq. 15 view-dependence bound must stay below it. Larger reprojects more "
-                "glossy pixels (faster, risks stale highlights)",
-        "min": 0.0, "max": 1.0})
-    max_specular_share: float = field(default=0.5, metadata={
-        "help": "pixels whose glossy + transmission light exceeds this share of the combined "
-                "luminance are never reprojected (thesis: no specular/refractive reprojection). "
-                "Smaller is safer, larger reuses more",
-        "min": 0.0, "max": 1.0})
-    confidence: float = field(default=2.0, metadata={
-        "help": "z of the upper confidence bounds on noisy glossy/transmission passes in the Eq. 15 "
-                "bound; larger is more conservative (fewer glossy pixels reprojected)",
-        "min": 0.0, "max": 10.0})
-    occlusion_tolerance: float = field(default=0.01, metadata={
-        "help": "occlusion test epsilon as a fraction of the camera distance (added to "
-                "occlusion_pixels footprints); larger accepts more but misses occluders closer "
-                "to the surface",
-        "min": 0.0, "max": 1.0})
-    occlusion_pixels: float = field(default=1.0, metadata={
-        "help": "occlusion test slack in pixel footprints at the point's distance (sub-pixel "
-                "offsets on slanted surfaces); larger accepts more grazing surfaces",
-        "min": 0.0, "max": 16.0})
-    consistency_tolerance: float = field(default=0.01, metadata={
-        "help": "relative mismatch allowed between a pixel's position and its depth before it "
-                "counts as mixed (edges) or a specular chain; 0 disables the test",
-        "min": 0.0, "max": 1.0})
-    object_index_tolerance: float = field(default=1e-3, metadata={
-        "help": "largest change of the (pixel-mean) object index still counted as the same object",
-        "min": 0.0, "max": 1.0})
-    changed_sigma: float = field(default=5.0, metadata={
-        "help": "reject pixels whose reprojected mean differs from the new frame's own samples by "
-                "more than this many standard errors (+ max_error): moving shadows, lights, "
-                "animated textures; 0 disables (thesis: static scenes only)",
-        "min": 0.0, "max": 100.0})
-    background: bool = field(default=True, metadata={
-        "help": "reproject background (environment) pixels by direction; off leaves them to be "
-                "rendered fresh"})
-    assume_diffuse: bool = field(default=False, metadata={
-        "help": "treat missing glossy/transmission passes as zero (everything diffuse); off "
-                "rejects every pixel whose view changed when they are missing"})
-    min_valid_fraction: float = field(default=0.01, metadata={
-        "help": "if fewer than this fraction of the new frame's pixels receive reprojected "
-                "samples the frame is treated as a camera cut and nothing is reprojected",
-        "min": 0.0, "max": 1.0})
-    chunk: int = field(default=65536, metadata={
-        "help": "source pixels processed per vectorised batch (memory ~ 1 KB per pixel in flight)",
-        "min": 256, "max": 4194304})
+    max_error: float = param(
+        1.0 / 256.0, "Algorithm 2's maximum reprojection error epsilon (thesis: 1/256), absolute in image "
+        "units: the Eq. 15 view-dependence bound must stay below it. Larger reprojects more "
+        "glossy pixels (faster, risks stale highlights)", 0.0, 1.0)
+    max_specular_share: float = param(
+        0.5, "pixels whose glossy + transmission light exceeds this share of the combined "
+        "luminance are never reprojected (thesis: no specular/refractive reprojection). "
+        "Smaller is safer, larger reuses more", 0.0, 1.0)
+    confidence: float = param(
+        2.0, "z of the upper confidence bounds on noisy glossy/transmission passes in the Eq. 15 "
+        "bound; larger is more conservative (fewer glossy pixels reprojected)", 0.0, 10.0)
+    occlusion_tolerance: float = param(
+        0.01, "occlusion test epsilon as a fraction of the camera distance (added to "
+        "occlusion_pixels footprints); larger accepts more but misses occluders closer "
+        "to the surface", 0.0, 1.0)
+    occlusion_pixels: float = param(
+        1.0, "occlusion test slack in pixel footprints at the point's distance (sub-pixel "
+        "offsets on slanted surfaces); larger accepts more grazing surfaces", 0.0, 16.0)
+    consistency_tolerance: float = param(
+        0.01, "relative mismatch allowed between a pixel's position and its depth before it "
+        "counts as mixed (edges) or a specular chain; 0 disables the test", 0.0, 1.0)
+    object_index_tolerance: float = param(
+        1e-3, "largest change of the (pixel-mean) object index still counted as the same object", 0.0, 1.0)
+    changed_sigma: float = param(
+        5.0, "reject pixels whose reprojected mean differs from the new frame's own samples by "
+        "more than this many standard errors (+ max_error): moving shadows, lights, "
+        "animated textures; 0 disables (thesis: static scenes only)", 0.0, 100.0)
+    background: bool = param(
+        True, "reproject background (environment) pixels by direction; off leaves them to be "
+        "rendered fresh")
+    assume_diffuse: bool = param(
+        False, "treat missing glossy/transmission passes as zero (everything diffuse); off "
+        "rejects every pixel whose view changed when they are missing")
+    min_valid_fraction: float = param(
+        0.01, "if fewer than this fraction of the new frame's pixels receive reprojected "
+        "samples the frame is treated as a camera cut and nothing is reprojected", 0.0, 1.0)
+    chunk: int = param(
+        65536, "source pixels processed per vectorised batch (memory ~ 1 KB per pixel in flight)",
+        256, 4194304)
 
 
 def _params(params) -> Params:

@@ -77,7 +77,7 @@ import numpy as np
 
 from .buffers import Buffers
 from .lp_solve import ring_layout
-from .method import MethodResult, params_from_dict
+from .method import MethodResult, param, params_from_dict
 
 PASSES = ("position", "depth")
 
@@ -89,32 +89,26 @@ REL_FLOOR = 0.01
 class Params:
     """Temporal extension parameters (LP paper Sec. 6; defaults from the paper where it gives one)."""
 
-    lam: float = field(default=0.98, metadata={
-        "help": "forgetting factor lambda of Eq. 6 (paper: 0.98): weight of frame t-j is lambda^j; "
-                "closer to 1 averages more frames (less noise, more lag on changes)",
-        "min": 0.5, "max": 1.0})
-    delta: float = field(default=1e-3, metadata={
-        "help": "RLS initial confidence delta, P(0) = I/delta (paper Sec. 7: 0.001); larger keeps "
-                "new models near (y, 0) longer",
-        "min": 1e-9, "max": 1.0})
-    search_radius: int = field(default=3, metadata={
-        "help": "half width of the window searched for the best previous model (paper: 'a search "
-                "window', no size); larger follows faster motion, costs (2r+1)^2 tests per pixel",
-        "min": 0, "max": 16})
-    position_tolerance: float = field(default=0.05, metadata={
-        "help": "carried models must come from within this fraction of the pixel's depth of its "
-                "world position (0 = no gate, the literal paper); smaller restarts more models",
-        "min": 0.0, "max": 10.0})
-    reset_sigma: float = field(default=4.0, metadata={
-        "help": "restart a model whose prediction misses by more than this many standard "
-                "deviations (sudden lighting changes); 0 = never (the literal paper)",
-        "min": 0.0, "max": 100.0})
-    spatial: bool = field(default=True, metadata={
-        "help": "filter each frame with static LP first and feed its output to Eq. 6 (paper); off "
-                "feeds the raw pixel means (faster, noisier)"})
-    chunk: int = field(default=65536, metadata={
-        "help": "pixels processed per vectorised batch (memory ~ 0.5 KB per pixel in flight)",
-        "min": 256, "max": 4194304})
+    lam: float = param(
+        0.98, "forgetting factor lambda of Eq. 6 (paper: 0.98): weight of frame t-j is lambda^j; "
+        "closer to 1 averages more frames (less noise, more lag on changes)", 0.5, 1.0)
+    delta: float = param(
+        1e-3, "RLS initial confidence delta, P(0) = I/delta (paper Sec. 7: 0.001); larger keeps "
+        "new models near (y, 0) longer", 1e-9, 1.0)
+    search_radius: int = param(
+        3, "half width of the window searched for the best previous model (paper: 'a search "
+        "window', no size); larger follows faster motion, costs (2r+1)^2 tests per pixel", 0, 16)
+    position_tolerance: float = param(
+        0.05, "carried models must come from within this fraction of the pixel's depth of its "
+        "world position (0 = no gate, the literal paper); smaller restarts more models", 0.0, 10.0)
+    reset_sigma: float = param(
+        4.0, "restart a model whose prediction misses by more than this many standard "
+        "deviations (sudden lighting changes); 0 = never (the literal paper)", 0.0, 100.0)
+    spatial: bool = param(
+        True, "filter each frame with static LP first and feed its output to Eq. 6 (paper); off "
+        "feeds the raw pixel means (faster, noisier)")
+    chunk: int = param(
+        65536, "pixels processed per vectorised batch (memory ~ 0.5 KB per pixel in flight)", 256, 4194304)
 
     @classmethod
     def from_dict(cls, values):

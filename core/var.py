@@ -92,12 +92,12 @@ Special cases
 """
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 
 from .buffers import Buffers, luminance
-from .method import MethodResult
+from .method import MethodResult, param
 
 PASSES: tuple = ()
 ADAPTIVE = True
@@ -107,28 +107,24 @@ ADAPTIVE = True
 class Params:
     """Parameters of the var sampler (thesis defaults: min 4, max 32)."""
 
-    min_spp: int = field(default=4, metadata={
-        "help": "Samples every pixel gets before adapting (Alg. 1 min_spp); also the floor "
-                "min_spp/max_spp of each pixel's probability. Higher = safer variance "
-                "estimates and faster convergence everywhere, less adaptivity",
-        "min": 1, "max": 4096})
-    max_spp: int = field(default=32, metadata={
-        "help": "Iterations of the falling threshold (Alg. 1 max_spp); at most this many "
-                "samples per pixel before probabilities are fixed. Higher = slower, "
-                "better-informed probabilities",
-        "min": 1, "max": 65536})
-    epsilon: float = field(default=1e-3, metadata={
-        "help": "Eq. 12 epsilon (luminance units): keeps dark, noiseless pixels sampled. "
-                "Larger = fewer samples to dark pixels",
-        "min": 1e-9, "max": 10.0})
-    epsilon_inside_sqrt: bool = field(default=False, metadata={
-        "help": "Use Algorithm 1's form sqrt(Var + eps) / (L + eps) instead of Eq. 12's "
-                "(sqrt(Var) + eps) / (L + eps); the square-root form favours dark pixels "
-                "much more strongly"})
-    seed: int = field(default=0, metadata={
-        "help": "Seed of the per-pixel random draws after the threshold phase "
-                "(combined with the run's --seed); same seed = same sample maps",
-        "min": 0, "max": 2 ** 31 - 1})
+    min_spp: int = param(
+        4, "Samples every pixel gets before adapting (Alg. 1 min_spp); also the floor "
+        "min_spp/max_spp of each pixel's probability. Higher = safer variance "
+        "estimates and faster convergence everywhere, less adaptivity", 1, 4096)
+    max_spp: int = param(
+        32, "Iterations of the falling threshold (Alg. 1 max_spp); at most this many "
+        "samples per pixel before probabilities are fixed. Higher = slower, "
+        "better-informed probabilities", 1, 65536)
+    epsilon: float = param(
+        1e-3, "Eq. 12 epsilon (luminance units): keeps dark, noiseless pixels sampled. "
+        "Larger = fewer samples to dark pixels", 1e-9, 10.0)
+    epsilon_inside_sqrt: bool = param(
+        False, "Use Algorithm 1's form sqrt(Var + eps) / (L + eps) instead of Eq. 12's "
+        "(sqrt(Var) + eps) / (L + eps); the square-root form favours dark pixels "
+        "much more strongly")
+    seed: int = param(
+        0, "Seed of the per-pixel random draws after the threshold phase "
+        "(combined with the run's --seed); same seed = same sample maps", 0, 2 ** 31 - 1)
 
 
 # ------------------------------------------------------------------- pieces
