@@ -293,19 +293,17 @@ def spread_factor(n, mode: str = "sample") -> np.ndarray:
     return np.ones(np.shape(n))
 
 
-def mitchell_variance(mean: np.ndarray, sample_var: np.ndarray, n, mode: str = "range"
-                      ) -> np.ndarray:
+def mitchell_variance(mean: np.ndarray, sample_var: np.ndarray, n) -> np.ndarray:
     """Squared Mitchell contrast ``(I_max - I_min)^2 / (I_max + I_min)^2`` (Eq. 5).
 
-    Numerator ``spread_factor(N, mode) s^2`` (``"range"``: ``(d2(N) s)^2``, the
-    expected squared range; ``"sample"``: ``s^2``), ``I_max + I_min = 2 |mu|``;
-    capped at 1.
+    Numerator ``(d2(N) s)^2``, the expected squared range
+    (``spread_factor(N, "range") s^2``), ``I_max + I_min = 2 |mu|``; capped at 1.
 
     mean, sample_var : (H, W, C) per-channel pixel mean and per-sample variance
     n : (H, W) sample counts
     Returns (H, W) float64 in [0, 1], the largest over channels.
     """
-    num = spread_factor(n, mode)[..., None] * np.maximum(sample_var, 0.0)
+    num = spread_factor(n, "range")[..., None] * np.maximum(sample_var, 0.0)
     den = 4.0 * mean * mean
     with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
         c2 = np.where(num >= den, (num > 0).astype(np.float64), num / np.where(den > 0, den, 1.0))
@@ -618,7 +616,7 @@ def _sampler_inputs(buf: Buffers, params: Params) -> _SamplerInputs:
     h, w = prep.n.shape
     levels = min(int(params.sample_levels), wv.max_levels((h, w)))
     s2 = np.minimum(prep.var * np.maximum(prep.n, 1.0)[..., None], _BIG_VAR)
-    sigma_f = np.where(prep.missing, 1.0, mitchell_variance(prep.mean, s2, prep.n, "range"))
+    sigma_f = np.where(prep.missing, 1.0, mitchell_variance(prep.mean, s2, prep.n))
     lum = prep.mean @ LUMA
     pos = lum[lum > 0]
     med = float(np.median(pos)) if pos.size else 0.0
