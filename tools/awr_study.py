@@ -13,12 +13,14 @@ Per scene it prints
    groups of 1 (``true/est``), and the exponent ``alpha`` of a power law
    ``S(m) ~ m^-alpha`` of the per-sample variance at group size ``m``, estimated
    from the first 4 groups as ``-log2(S(2) / S(1))`` (what the render loop's
-   initial pass could measure).
+   initial pass could measure).  Also relMSE x N for N = 15, 16, 17: counts
+   off a power of two lose part of the sequence's stratification.
 2. AWR reconstruction of that 16-sample mean (4 groups of 4) with the variance
    scaled by 1, 0.7 and 0.5, through the consistency guard, against the mean;
    and the relMSE share of dark pixels (reference luminance < 0.1).
-3. The render loop with ``--method awr`` at 16 spp: spread of the final sample
-   counts, relMSE of the loop's reconstruction and of the same reconstruction
+3. The render loop with ``--method awr`` at 16 spp, with the default task cost
+   and with ``task_cost = 0`` (the sample map followed pixel-exactly): spread of
+   the final sample counts, relMSE of the loop's reconstruction and of the same reconstruction
    with the variance of the mean scaled by ``k^-alpha`` (k = groups per pixel).
 """
 import argparse
@@ -84,6 +86,9 @@ def study(scene, n_groups):
     print(f"{scene}: true/est at 16 spp: groups of 4 {true16 / est[4]:.2f}, of 1 "
           f"{true16 / est[1]:.2f}; alpha from the first 4 groups {alpha:.2f} "
           f"(predicts {4 ** -alpha:.2f} for groups of 4)")
+    eff = {n: metrics.relmse(g[:n].mean(0), ref) * n for n in (15, 16, 17)}
+    print("  relMSE x N of the first N samples (QMC efficiency; lower is better): "
+          + ", ".join(f"N={n}: {v:.3f}" for n, v in eff.items()))
 
     buf = Buffers.from_subsets(list(grouped(g, 16, 4)), [4] * 4)
     mean = buf.color.mean
@@ -100,22 +105,25 @@ def study(scene, n_groups):
           f"{em[dark].sum() / em.size:.2e} -> awr {ea[dark].sum() / ea.size:.2e}; other pixels "
           f"{em[~dark].sum() / em.size:.2e} -> {ea[~dark].sum() / ea.size:.2e}")
 
-    opts = Options(method="awr", spp=16, frame=sc.frame_current)
-    with CyclesExecutor(sc, bpy.context.view_layer, (), seed=0) as ex:
-        run = AdaptiveRun(ex, opts)
-        for _ in run.steps():
-            pass
-    lb = run.buffers
-    loop = run.reconstruct().image
-    corrected = reconstruct(lb, (lb.k ** -alpha)[..., None])
-    lv = lb.variance_of_mean()
-    ratio = float((((lb.color.mean - ref) ** 2) * w).sum() / (lv * w).sum())
-    p = np.percentile(lb.n, [0, 50, 100])
-    print(f"  loop (awr, 16 spp): samples per pixel min/median/max {p[0]:.0f}/{p[1]:.0f}/{p[2]:.0f}, "
-          f"groups {lb.k.min():.0f}-{lb.k.max():.0f}, true/est {ratio:.2f}; relMSE mean "
-          f"{metrics.relmse(lb.color.mean, ref):.2e}, awr {metrics.relmse(loop, ref):.2e}, "
-          f"awr with variance x k^-alpha {metrics.relmse(corrected, ref):.2e}", flush=True)
-
+    for task_cost in (None, 0.0):
+        extra = {} if task_cost is None else {"task_cost": task_cost}
+        opts = Options(method="awr", spp=16, frame=sc.frame_current, **extra)
+        with CyclesExecutor(sc, bpy.context.view_layer, (), seed=0) as ex:
+            run = AdaptiveRun(ex, opts)
+            for _ in run.steps():
+                pass
+        lb = run.buffers
+        loop = run.reconstruct().image
+        corrected = reconstruct(lb, (lb.k ** -alpha)[..., None])
+        lv = lb.variance_of_mean()
+        ratio = float((((lb.color.mean - ref) ** 2) * w).sum() / (lv * w).sum())
+        p = np.percentile(lb.n, [0, 50, 100])
+        label = "default task cost" if task_cost is None else "task cost 0, map followed exactly"
+        print(f"  loop (awr, 16 spp, {label}): samples per pixel min/median/max "
+              f"{p[0]:.0f}/{p[1]:.0f}/{p[2]:.0f}, groups {lb.k.min():.0f}-{lb.k.max():.0f}, true/est "
+              f"{ratio:.2f}; relMSE mean {metrics.relmse(lb.color.mean, ref):.2e}, awr "
+              f"{metrics.relmse(loop, ref):.2e}, awr with variance x k^-alpha "
+              f"{metrics.relmse(corrected, ref):.2e}", flush=True)
 
 def main():
     ap = argparse.ArgumentParser()
