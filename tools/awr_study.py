@@ -45,18 +45,11 @@ from cycles_adaptive.core.regions import RegionTask  # noqa: E402
 SCENES = ("soft_shadows", "cornell", "dof", "glossy", "motion_blur", "animated")
 
 
-def weights(ref):
-    return 1.0 / (ref * ref + 0.01)  # the relMSE weights (core.metrics.relmse)
-
-
-def per_sample_var(groups):
-    """Between-group per-sample variance of equal groups (k, H, W, 3) of size m,
-    times m: ``S(m)``; (H, W, 3)."""
-    return groups.var(axis=0, ddof=1)
-
-
-def grouped(g, n, m):
-    return g[:n].reshape(n // m, m, *g.shape[1:]).mean(axis=1)
+def subsets(g, n, m):
+    """Buffers of the first ``n`` 1-sample frames ``g`` merged as ``n / m``
+    groups of ``m`` consecutive samples: the estimator the methods see."""
+    groups = g[:n].reshape(n // m, m, *g.shape[1:]).mean(axis=1)
+    return Buffers.from_subsets(list(groups), [m] * (n // m))
 
 
 def reconstruct(buf, scale):
@@ -70,7 +63,6 @@ def study(scene, n_groups):
     if not os.path.exists(ref_path):
         sys.exit(f"missing {ref_path}: run ./cycles-adaptive references --scenes {scene}")
     ref = io.read_rgb(ref_path)
-    w = weights(ref)
     bpy.ops.wm.open_mainfile(filepath=os.path.join(ROOT, "sample_blends", f"{scene}.blend"))
     sc = bpy.context.scene
     with CyclesExecutor(sc, bpy.context.view_layer, (), seed=0) as ex:
@@ -78,19 +70,23 @@ def study(scene, n_groups):
         g = np.stack([np.asarray(ex.render(RegionTask(0, 0, wd, h, 1, frame=sc.frame_current,
                                                       offset=i))[0], np.float64)[..., :3]
                       for i in range(n_groups)])
-    true16 = float((((g[:16].mean(0) - ref) ** 2) * w).sum())
-    est = {m: float((per_sample_var(grouped(g, 16, m)) * m / 16 * w).sum()) for m in (1, 4)}
-    s1 = float((per_sample_var(g[:4]) * w).sum())
-    s2 = float((per_sample_var(grouped(g, 4, 2)) * 2 * w).sum())
+    w = 1.0 / (ref * ref + 0.01)  # the relMSE weights (core.metrics.relmse)
+    weighted = lambda v: float((v * w).mean())  # noqa: E731
+
+    def true_over_est(buf):
+        return metrics.relmse(buf.color.mean, ref) / weighted(buf.variance_of_mean())
+
+    s1 = weighted(subsets(g, 4, 1).sample_variance())
+    s2 = weighted(subsets(g, 4, 2).sample_variance())
     alpha = float(np.clip(-np.log2(max(s2, 1e-300) / max(s1, 1e-300)), 0.0, 1.0))
-    print(f"{scene}: true/est at 16 spp: groups of 4 {true16 / est[4]:.2f}, of 1 "
-          f"{true16 / est[1]:.2f}; alpha from the first 4 groups {alpha:.2f} "
+    print(f"{scene}: true/est at 16 spp: groups of 4 {true_over_est(subsets(g, 16, 4)):.2f}, of 1 "
+          f"{true_over_est(subsets(g, 16, 1)):.2f}; alpha from the first 4 groups {alpha:.2f} "
           f"(predicts {4 ** -alpha:.2f} for groups of 4)")
     eff = {n: metrics.relmse(g[:n].mean(0), ref) * n for n in (15, 16, 17)}
     print("  relMSE x N of the first N samples (QMC efficiency; lower is better): "
           + ", ".join(f"N={n}: {v:.3f}" for n, v in eff.items()))
 
-    buf = Buffers.from_subsets(list(grouped(g, 16, 4)), [4] * 4)
+    buf = subsets(g, 16, 4)
     mean = buf.color.mean
     row = [f"  16 spp (4 x 4): mean {metrics.relmse(mean, ref):.2e}"]
     images = {}
@@ -99,8 +95,7 @@ def study(scene, n_groups):
         row.append(f"awr var x{s}: {metrics.relmse(images[s], ref):.2e}")
     print(" | ".join(row))
     dark = (ref @ LUMA) < 0.1
-    err = lambda x: (((x - ref) ** 2) * w).mean(-1)  # noqa: E731
-    em, ea = err(mean), err(images[1.0])
+    em, ea = metrics.per_pixel_relmse(mean, ref), metrics.per_pixel_relmse(images[1.0], ref)
     print(f"  dark pixels (luminance < 0.1, {dark.mean():.0%}): relMSE share mean "
           f"{em[dark].sum() / em.size:.2e} -> awr {ea[dark].sum() / ea.size:.2e}; other pixels "
           f"{em[~dark].sum() / em.size:.2e} -> {ea[~dark].sum() / ea.size:.2e}")
@@ -115,13 +110,11 @@ def study(scene, n_groups):
         lb = run.buffers
         loop = run.reconstruct().image
         corrected = reconstruct(lb, (lb.k ** -alpha)[..., None])
-        lv = lb.variance_of_mean()
-        ratio = float((((lb.color.mean - ref) ** 2) * w).sum() / (lv * w).sum())
         p = np.percentile(lb.n, [0, 50, 100])
         label = "default task cost" if task_cost is None else "task cost 0, map followed exactly"
         print(f"  loop (awr, 16 spp, {label}): samples per pixel min/median/max "
               f"{p[0]:.0f}/{p[1]:.0f}/{p[2]:.0f}, groups {lb.k.min():.0f}-{lb.k.max():.0f}, true/est "
-              f"{ratio:.2f}; relMSE mean {metrics.relmse(lb.color.mean, ref):.2e}, awr "
+              f"{true_over_est(lb):.2f}; relMSE mean {metrics.relmse(lb.color.mean, ref):.2e}, awr "
               f"{metrics.relmse(loop, ref):.2e}, awr with variance x k^-alpha "
               f"{metrics.relmse(corrected, ref):.2e}", flush=True)
 
