@@ -184,7 +184,10 @@ class AdaptiveRun:
                 left = max(1, opts.iterations - self.iteration)
                 budget = self.remaining if left <= 1 else int(self.remaining / left)
             t0 = time.perf_counter()
-            result = self.method.reconstruct(self.buffers, self.params)
+            # a method whose sampler ignores the reconstruction (AWR: Eq. 8 reads
+            # the noisy means) says so, and is not reconstructed per iteration
+            result = (self.method.reconstruct(self.buffers, self.params)
+                      if getattr(self.method, "SAMPLER_USES_RESULT", True) else None)
             tasks, covered, counts = self._plan_iteration(result, budget)
             self.timing.adapt += time.perf_counter() - t0
             if not tasks:

@@ -182,7 +182,7 @@ def test_matches_independent_haar_implementation_with_pywavelets():
     color = truth + np.sqrt(var) * rng.standard_normal(truth.shape)
     n = 16
     for mode, rvar in (("range", awr.expected_range(n) ** 2 * var), ("sample", var)):
-        res = awr.denoise(color, var, {}, awr.Params(wavelet="haar", recon_variance=mode), spp=n)
+        res = awr.denoise(color, var, {}, awr.Params(wavelet="haar", recon_variance=mode, shifts=1), spp=n)
         np.testing.assert_allclose(res.image, _pywt_haar_soft(color, rvar), atol=1e-12)
 
 
@@ -200,6 +200,66 @@ def _pywt_haar_soft(color, rvar):
             new.append(tuple(np.sign(d) * np.maximum(np.abs(d) - t, 0) for d in coeffs[idx]))
         out[..., c] = pywt.waverec2(new, "haar", mode="symmetric")
     return out
+
+
+def test_shift_sets_cover_level_1_parities_and_level_2_residues():
+    for count in (4, 8, 12, 16):
+        sh = awr.shift_set(count)
+        assert len(set(sh)) == count
+        for g in range(0, count, 4):
+            group = sh[g:g + 4]
+            assert {(dy % 2, dx % 2) for dy, dx in group} == {(0, 0), (0, 1), (1, 0), (1, 1)}
+            assert sorted(dy for dy, _ in group) == sorted(dx for _, dx in group) == [0, 1, 2, 3]
+    assert set(awr.shift_set(16)) == {(a, b) for a in range(4) for b in range(4)}
+    assert awr.shift_set(1) == ((0, 0),)
+    for bad in (0, 17):
+        with pytest.raises(ValueError):
+            awr.shift_set(bad)
+
+
+@pytest.mark.parametrize("shifts", [2, 4, 7])
+def test_cycle_spinning_is_the_mean_of_translated_single_transforms(shifts):
+    """By hand: translate mean, variance and counts by each offset (half-sample
+    symmetric rows/columns prepended), reconstruct with the single transform,
+    crop, average."""
+    rng = np.random.default_rng(11)
+    h, w = 27, 34
+    color = piecewise_smooth(h, w) + 0.05 * rng.standard_normal((h, w, 3))
+    var = rng.uniform(0.0005, 0.003, (h, w, 3))
+    n = rng.integers(4, 40, (h, w)).astype(float)
+    params = awr.Params(shifts=shifts)
+    got = awr.denoise(color, var, {}, params, spp=n)
+    acc = np.zeros_like(color)
+    for dy, dx in awr.shift_set(shifts):
+        pad = ((dy, 0), (dx, 0))
+        one = awr.denoise(np.pad(color, pad + ((0, 0),), mode="symmetric"),
+                          np.pad(var, pad + ((0, 0),), mode="symmetric"), {},
+                          awr.Params(shifts=1), spp=np.pad(n, pad, mode="symmetric"))
+        acc += one.image[dy:, dx:]
+    np.testing.assert_allclose(got.image, acc / shifts, atol=1e-12)
+    # the error estimate is the untranslated transform's
+    np.testing.assert_allclose(got.error, awr.denoise(color, var, {}, awr.Params(shifts=1),
+                                                      spp=n).error, rtol=1e-12)
+    assert got.info["shifts"] == shifts
+
+
+def test_cycle_spinning_lowers_the_error():
+    """Averaging over grid translations removes the shift-dependent part of the
+    thresholding error: 4 shifts beat the single transform on every seed."""
+    truth = piecewise_smooth(64, 64)
+    for seed in range(3):
+        buf = gaussian_buffers(truth, 0.4 * np.sqrt(truth), k=4, per=4, seed=seed)
+        one, four = (rel_mse(awr.reconstruct(buf, awr.Params(shifts=s)).image, truth) for s in (1, 4))
+        assert four < 0.95 * one
+
+
+@pytest.mark.parametrize("shape", [(1, 1), (1, 7), (2, 3), (5, 1), (3, 3)])
+def test_cycle_spinning_on_tiny_images(shape):
+    rng = np.random.default_rng(2)
+    color = rng.uniform(0, 1, shape + (3,))
+    res = awr.denoise(color, np.full(color.shape, 0.01), {}, awr.Params(shifts=16))
+    assert res.image.shape == color.shape and np.isfinite(res.image).all()
+    assert res.error.shape == shape and np.isfinite(res.error).all()
 
 
 def test_denoise_equals_reconstruct_on_the_same_statistics():

@@ -114,3 +114,24 @@ def test_bad_options_are_refused():
         AdaptiveRun(ex, Options(method="nope"))
     with pytest.raises(ValueError, match="spp"):
         AdaptiveRun(ex, Options(method="var", spp=0))
+
+
+def test_awr_loop_does_not_reconstruct_per_iteration(monkeypatch):
+    """AWR's sampler reads the noisy means (Eq. 8), not the reconstruction, so
+    the loop reconstructs only when asked for the final image; var's sampler
+    uses it and gets one per iteration."""
+    from core import awr, var
+    calls = {"awr": 0, "var": 0}
+    for name, mod in (("awr", awr), ("var", var)):
+        orig = mod.reconstruct
+
+        def counting(buf, params=None, _orig=orig, _name=name):
+            calls[_name] += 1
+            return _orig(buf, params)
+        monkeypatch.setattr(mod, "reconstruct", counting)
+    runs = {m: _run(16, 16, method=m, spp=12, initial_spp=4, subsets=4, task_cost=0)[0]
+            for m in ("awr", "var")}
+    assert calls["awr"] == 0 and runs["awr"].iteration >= 2
+    assert calls["var"] == runs["var"].iteration >= 2
+    runs["awr"].reconstruct()
+    assert calls["awr"] == 1
