@@ -1,7 +1,11 @@
 """Issue 3 (AWR), why soft_shadows loses to plain sampling at 16 spp: the
 measurements behind the issue note, reproducible.
 
-    .venv/bin/python tools/awr_study.py [--scenes soft_shadows cornell ...] [--groups 32]
+    .venv/bin/python tools/awr_study.py [--scenes soft_shadows cornell ...] [--groups 32] [--shifts 1]
+
+``--shifts`` is AWR's cycle spinning (``awr.Params.shifts``); the default 1 is
+the paper's single transform, which the figures in the README's facts section
+describe (the product's default is 4).
 
 Needs the 1024-spp references (cached): ./cycles-adaptive references
 
@@ -52,9 +56,12 @@ def subsets(g, n, m):
     return Buffers.from_subsets(list(groups), [m] * (n // m))
 
 
+SHIFTS = 1  # set from --shifts
+
+
 def reconstruct(buf, scale):
     var = buf.variance_of_mean() * scale
-    res = awr.wavelet_reconstruct(buf.color.mean, var, buf.n)
+    res = awr.wavelet_reconstruct(buf.color.mean, var, buf.n, awr.Params(shifts=SHIFTS))
     return consistency_guard(res, buf, 3.0).image
 
 
@@ -102,7 +109,8 @@ def study(scene, n_groups):
 
     for task_cost in (None, 0.0):
         extra = {} if task_cost is None else {"task_cost": task_cost}
-        opts = Options(method="awr", spp=16, frame=sc.frame_current, **extra)
+        opts = Options(method="awr", spp=16, frame=sc.frame_current, params={"shifts": SHIFTS},
+                       **extra)
         with CyclesExecutor(sc, bpy.context.view_layer, (), seed=0) as ex:
             run = AdaptiveRun(ex, opts)
             for _ in run.steps():
@@ -122,7 +130,11 @@ def main():
     ap = argparse.ArgumentParser()
     ap.add_argument("--scenes", nargs="+", default=list(SCENES))
     ap.add_argument("--groups", type=int, default=32)
+    ap.add_argument("--shifts", type=int, default=1,
+                    help="AWR grid translations (awr.Params.shifts; default 1, the paper's transform)")
     args = ap.parse_args()
+    global SHIFTS
+    SHIFTS = args.shifts
     if args.groups < 16:
         sys.exit("--groups must be at least 16")
     for scene in args.scenes:
