@@ -91,17 +91,18 @@ coefficients stay finite.
 
 Error estimate (``MethodResult.error``)
 ---------------------------------------
-Of the untranslated transform (with ``shifts > 1`` the averaged image's error
-is at most the mean of the translated ones', squared error being convex, and
-the translated copies' duplicated border rows would bias a per-copy estimate):
-Stein's unbiased risk estimate of each soft-thresholded coefficient,
+Of the untranslated transform.  With ``shifts > 1`` this is conservative: the
+averaged image's squared error is at most the mean of the translated copies'
+(squared error is convex), and every copy has the untranslated one's expected
+error up to the borders; a per-copy estimate would instead be biased by the
+copies' duplicated border rows.  The estimate is Stein's unbiased risk
+estimate of each soft-thresholded coefficient,
 ``sigma_w^2 - 2 sigma_w^2 [|w| <= t] + min(w^2, t^2)`` with ``t = c_s Delta`` and
 ``sigma_w^2`` the coefficient's actual variance ``<Var(mean), Psi^2>`` (natural
 squared filters; obtained from ``Delta^2`` by dividing out the renormalisation
 and, with ``recon_variance = "range"``, ``d2(N)^2``, the latter as its
-``Psi^2``-weighted mean over the support when
-``N`` varies, which is exact where ``N`` is locally constant and saves one
-transform per channel), plus the variance of the untouched coarse coefficients,
+``Psi^2``-weighted mean over the support when ``N`` varies, which is exact
+where ``N`` is locally constant and saves one transform per channel), plus the variance of the untouched coarse coefficients,
 propagated to pixels by a synthesis with squared synthesis filters (coefficient
 errors taken as uncorrelated), clamped at 0 and averaged over RGB.
 
@@ -676,8 +677,8 @@ def wavelet_reconstruct(mean: np.ndarray, var: np.ndarray, n, params: Params | N
     image = np.stack([f + d / len(shifts) if len(shifts) > 1 else f
                       for f, d in zip(first, delta)], axis=-1)
     # Error: SURE per coefficient of the untranslated transform, averaged over
-    # channels, squared synthesis (module docstring: it bounds the averaged
-    # image's error from above)
+    # channels, squared synthesis (module docstring: conservative for the
+    # averaged image, squared error being convex)
     sure.approx = sure.approx / c
     sure.details = [tuple(b / c for b in d) for d in sure.details]
     err = wv.idwt2_variance(sure, bank)
