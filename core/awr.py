@@ -487,29 +487,28 @@ def _subband_gains(shape, levels, r_lo, r_hi) -> tuple:
     return out, acc
 
 
-def _denoise_plane(img, rvar, nat_ratio, bank, levels, params, with_sure=True):
+def _denoise_plane(img, rvar, nat_ratio, bank, levels, params):
     """Eq. 7, 10, 11 and synthesis for one channel.
 
     img : (H, W) pixel means; rvar : (H, W) ``sigma^2(B)`` of Eq. 10 (range
     based); nat_ratio : per level (r0, r1, r2) factors (scalars or arrays) that
     turn the renormalised ``Delta^2`` into the coefficient's actual variance,
-    plus the factor for the coarsest scale coefficients.
-    Returns (image, SURE pyramid or None without ``with_sure``, (any
-    coefficient thresholded, zero coefficients after thresholding,
-    coefficients)).
+    plus the factor for the coarsest scale coefficients; ``None``: no error
+    estimate (the translated copies of the cycle spinning).
+    Returns (image, SURE pyramid or None, (any coefficient thresholded, zero
+    coefficients after thresholding, coefficients)).
     """
     pyr = wv.dwt2(img, bank, levels)
     r = float(params.recon_filter_sum)
     dpyr = wv.dwt2_variance(rvar, bank, levels, lo_sum=r, hi_sum=r)
-    det_ratio, approx_ratio = nat_ratio if with_sure else ([(None,) * 3] * len(pyr.details), None)
     cs = float(params.smoothing)
     shrunk = False
     zeroed = total = 0
     sure_details = []
     new_details = []
-    for det, dv, rk in zip(pyr.details, dpyr.details, det_ratio):
+    for k, (det, dv) in enumerate(zip(pyr.details, dpyr.details)):
         nd, sd = [], []
-        for w, d2b, ra in zip(det, dv, rk):
+        for alpha, (w, d2b) in enumerate(zip(det, dv)):
             t = np.sqrt(d2b)
             t *= cs
             wn = soft_threshold(w, t)
@@ -517,11 +516,12 @@ def _denoise_plane(img, rvar, nat_ratio, bank, levels, params, with_sure=True):
             zeroed += int(w.size - np.count_nonzero(wn))
             total += w.size
             nd.append(wn)
-            if with_sure:
-                sd.append(sure_soft(w, t, d2b * ra))
+            if nat_ratio is not None:
+                sd.append(sure_soft(w, t, d2b * nat_ratio[0][k][alpha]))
         new_details.append(tuple(nd))
         sure_details.append(tuple(sd))
-    sure = wv.Pyramid(dpyr.approx * approx_ratio, sure_details, dpyr.axes) if with_sure else None
+    sure = (None if nat_ratio is None
+            else wv.Pyramid(dpyr.approx * nat_ratio[1], sure_details, dpyr.axes))
     if not shrunk:  # nothing to threshold: the input exactly (not a round trip)
         return img.copy(), sure, (False, 0, total)
     out = wv.idwt2(wv.Pyramid(pyr.approx, new_details, pyr.axes), bank)
@@ -552,10 +552,10 @@ def _bounded_map(pool, fn, jobs, ahead: int):
 _THREAD_MIN_PIXELS = 1 << 19
 
 
-def _n_threads(params, c, pixels=None):
+def _n_threads(params, c, pixels):
     if params.threads:
         t = int(params.threads)
-    elif pixels is not None and pixels < _THREAD_MIN_PIXELS:
+    elif pixels < _THREAD_MIN_PIXELS:
         t = 1
     else:
         t = os.cpu_count() or 1
@@ -630,7 +630,8 @@ def wavelet_reconstruct(mean: np.ndarray, var: np.ndarray, n, params: Params | N
         shape = (h + dy, w + dx)
         full = wv.max_levels(shape)
         levels = full if int(params.levels) <= 0 else min(int(params.levels), full)
-        # factors for the error estimate, which only the untranslated transform gives
+        # factors for the error estimate, which only the untranslated transform
+        # gives (None: _denoise_plane skips it)
         ratios = (_natural_ratios(shape, levels, bank, float(params.recon_filter_sum), d2sq)
                   if not per_shift else None)
         per_shift.append((dy, dx, levels, ratios))
@@ -639,8 +640,7 @@ def wavelet_reconstruct(mean: np.ndarray, var: np.ndarray, n, params: Params | N
         si, ch = job
         dy, dx, levels, ratios = per_shift[si]
         img = np.ascontiguousarray(_shifted(prep.mean[..., ch], dy, dx))
-        return _denoise_plane(img, _shifted(rvar[..., ch], dy, dx), ratios, bank, levels, params,
-                              with_sure=si == 0)
+        return _denoise_plane(img, _shifted(rvar[..., ch], dy, dx), ratios, bank, levels, params)
 
     jobs = [(si, ch) for si in range(len(shifts)) for ch in range(c)]
     nt = _n_threads(params, len(jobs), h * w)

@@ -61,12 +61,9 @@ def subsets(g, n, m):
     return Buffers.from_subsets(list(groups), [m] * (n // m))
 
 
-SHIFTS = 1  # set from --shifts
-
-
-def reconstruct(buf, scale):
+def reconstruct(buf, scale, shifts):
     var = buf.variance_of_mean() * scale
-    res = awr.wavelet_reconstruct(buf.color.mean, var, buf.n, awr.Params(shifts=SHIFTS))
+    res = awr.wavelet_reconstruct(buf.color.mean, var, buf.n, awr.Params(shifts=shifts))
     return consistency_guard(res, buf, 3.0).image
 
 
@@ -126,7 +123,7 @@ def seeds(scenes, seed_list, spp):
                   f"{100 * abs(1 - a4 / u):.1f} %", flush=True)
 
 
-def study(scene, n_groups):
+def study(scene, n_groups, shifts):
     ref, sc, g = frames(scene, n_groups)
     w = 1.0 / (ref * ref + 0.01)  # the relMSE weights (core.metrics.relmse)
     weighted = lambda v: float((v * w).mean())  # noqa: E731
@@ -149,7 +146,7 @@ def study(scene, n_groups):
     row = [f"  16 spp (4 x 4): mean {metrics.relmse(mean, ref):.2e}"]
     images = {}
     for s in (1.0, 0.7, 0.5):
-        images[s] = reconstruct(buf, s)
+        images[s] = reconstruct(buf, s, shifts)
         row.append(f"awr var x{s}: {metrics.relmse(images[s], ref):.2e}")
     print(" | ".join(row))
     dark = (ref @ LUMA) < 0.1
@@ -160,7 +157,7 @@ def study(scene, n_groups):
 
     for task_cost in (None, 0.0):
         extra = {} if task_cost is None else {"task_cost": task_cost}
-        opts = Options(method="awr", spp=16, frame=sc.frame_current, params={"shifts": SHIFTS},
+        opts = Options(method="awr", spp=16, frame=sc.frame_current, params={"shifts": shifts},
                        **extra)
         with CyclesExecutor(sc, bpy.context.view_layer, (), seed=0) as ex:
             run = AdaptiveRun(ex, opts)
@@ -168,7 +165,7 @@ def study(scene, n_groups):
                 pass
         lb = run.buffers
         loop = run.reconstruct().image
-        corrected = reconstruct(lb, (lb.k ** -alpha)[..., None])
+        corrected = reconstruct(lb, (lb.k ** -alpha)[..., None], shifts)
         p = np.percentile(lb.n, [0, 50, 100])
         label = "default task cost" if task_cost is None else "task cost 0, map followed exactly"
         print(f"  loop (awr, 16 spp, {label}): samples per pixel min/median/max "
@@ -188,15 +185,13 @@ def main():
                          "(uniform, awr with 1 and 4 shifts) for each seed and scene")
     ap.add_argument("--spp", type=float, default=16, help="budget of the --seeds replays (default 16)")
     args = ap.parse_args()
-    global SHIFTS
-    SHIFTS = args.shifts
     if args.seeds:
         seeds(args.scenes, [int(x) for x in args.seeds.split(",")], args.spp)
         return
     if args.groups < 16:
         sys.exit("--groups must be at least 16")
     for scene in args.scenes:
-        study(scene, args.groups)
+        study(scene, args.groups, args.shifts)
 
 
 if __name__ == "__main__":
