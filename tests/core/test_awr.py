@@ -182,7 +182,8 @@ def test_matches_independent_haar_implementation_with_pywavelets():
     color = truth + np.sqrt(var) * rng.standard_normal(truth.shape)
     n = 16
     for mode, rvar in (("range", awr.expected_range(n) ** 2 * var), ("sample", var)):
-        res = awr.denoise(color, var, {}, awr.Params(wavelet="haar", recon_variance=mode, shifts=1), spp=n)
+        params = awr.Params(wavelet="haar", recon_variance=mode, shifts=1, precision="float64")
+        res = awr.denoise(color, var, {}, params, spp=n)
         np.testing.assert_allclose(res.image, _pywt_haar_soft(color, rvar), atol=1e-12)
 
 
@@ -293,11 +294,13 @@ def test_error_estimate_without_smoothing_is_the_pixel_variance():
     rng = np.random.default_rng(7)
     color = rng.uniform(0, 1, (16, 16, 3))
     var = np.broadcast_to([0.01, 0.02, 0.04], color.shape)
-    res = awr.denoise(color, var, {}, awr.Params(smoothing=0.0, wavelet="haar"), spp=8)
-    # nothing thresholded: SURE = coefficient variance; Haar is orthonormal,
-    # so the squared synthesis gives back the pixel variance exactly
-    assert np.array_equal(res.image, color)
-    np.testing.assert_allclose(res.error, np.full((16, 16), 0.07 / 3), rtol=1e-9)
+    for precision, rtol in (("float64", 1e-9), ("float32", 1e-5)):
+        params = awr.Params(smoothing=0.0, wavelet="haar", precision=precision)
+        res = awr.denoise(color, var, {}, params, spp=8)
+        # nothing thresholded: SURE = coefficient variance; Haar is orthonormal,
+        # so the squared synthesis gives back the pixel variance exactly
+        assert np.array_equal(res.image, color)
+        np.testing.assert_allclose(res.error, np.full((16, 16), 0.07 / 3), rtol=rtol)
 
 
 def test_single_subset_falls_back_to_mad_noise_estimate():
