@@ -244,6 +244,62 @@ def test_cycle_spinning_is_the_mean_of_translated_single_transforms(shifts):
     assert got.info["shifts"] == shifts
 
 
+@pytest.mark.parametrize("shifts", [1, 4])
+def test_float32_precision_matches_float64(shifts):
+    """The default float32 transforms against the float64 ones: the image
+    agrees to far below the noise, the error estimate to float32 rounding."""
+    rng = np.random.default_rng(12)
+    truth = piecewise_smooth(70, 90)
+    var = rng.uniform(0.0005, 0.003, truth.shape)
+    color = truth + np.sqrt(var) * rng.standard_normal(truth.shape)
+    r64, r32 = (awr.denoise(color, var, {}, awr.Params(shifts=shifts, precision=p), spp=16)
+                for p in ("float64", "float32"))
+    assert r64.image.dtype == r32.image.dtype == np.float64
+    assert np.abs(r32.image - r64.image).max() < 1e-4 * np.sqrt(var.min())
+    np.testing.assert_allclose(r32.error, r64.error, rtol=1e-3, atol=1e-12)
+    assert r32.info["zeroed_fraction"] == pytest.approx(r64.info["zeroed_fraction"], abs=1e-3)
+
+
+def test_float32_precision_near_bright_noiseless_emitters():
+    """HDR: a 1e4 noiseless emitter and a 5e3 line next to a dark region with
+    noise sigma = 5e-3 (dynamic range 2e6).  A coefficient's float32 error is
+    ~1e-7 of the emitter's contribution, and the clipped correction errs by at
+    most its threshold: dark pixels stay within a tenth of sigma of the
+    float64 result, bright ones within 1e-6 relative."""
+    rng = np.random.default_rng(5)
+    truth = np.full((96, 96, 3), 0.01)
+    var = np.full(truth.shape, 0.005 ** 2)
+    truth[30:50, 30:50] = 1e4
+    truth[70, 10:80] = 5e3
+    var[truth > 1] = 0.0
+    color = truth + np.sqrt(var) * rng.standard_normal(truth.shape)
+    r64, r32 = (awr.denoise(color, var, {}, awr.Params(precision=p), spp=16)
+                for p in ("float64", "float32"))
+    dark = truth < 1
+    assert np.abs(r32.image - r64.image)[dark].max() < 0.1 * 0.005
+    assert (np.abs(r32.image - r64.image)[~dark] / truth[~dark]).max() < 1e-6
+    assert np.isfinite(r32.error).all() and (r32.error >= 0).all()
+
+
+def test_values_beyond_float32_range_use_float64():
+    """Means of 1e30 and variances of 1e40 would overflow float32: the
+    reconstruction falls back to float64 and equals the float64 run."""
+    rng = np.random.default_rng(9)
+    color = 1e30 * (1 + 0.1 * rng.standard_normal((20, 24, 3)))
+    var = np.full(color.shape, 1e40)
+    a = awr.denoise(color, var, {}, awr.Params(), spp=16)
+    b = awr.denoise(color, var, {}, awr.Params(precision="float64"), spp=16)
+    assert np.isfinite(a.image).all() and np.isfinite(a.error).all()
+    assert np.array_equal(a.image, b.image) and np.array_equal(a.error, b.error)
+
+
+@pytest.mark.parametrize("precision", ["float32", "float64"])
+def test_zero_variance_input_is_exact_in_both_precisions(precision):
+    truth = np.random.default_rng(3).uniform(0, 1e5, (19, 23, 3))
+    res = awr.denoise(truth, np.zeros(truth.shape), {}, awr.Params(precision=precision), spp=8)
+    assert np.array_equal(res.image, truth)
+
+
 def test_cycle_spinning_lowers_the_error():
     """Averaging over grid translations removes the shift-dependent part of the
     thresholding error: 4 shifts beat the single transform on every seed."""

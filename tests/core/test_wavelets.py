@@ -87,6 +87,70 @@ def test_perfect_reconstruction_property(h, w, levels, name):
     np.testing.assert_allclose(wv.idwt2(pyr, name), x, atol=1e-12)
 
 
+# ----------------------------------------------------------- float32 path
+# float32 runs the last-axis filters of 2D arrays as blocked matrix products
+# (16 outputs per block, 128 rows per product): sizes around those boundaries
+F32_SHAPES = [(1, 1), (1, 3), (3, 1), (2, 2), (5, 31), (17, 32), (33, 33), (129, 34), (40, 97),
+              (130, 65), (257, 70)]
+
+
+@pytest.mark.parametrize("name", BANKS)
+@pytest.mark.parametrize("shape", F32_SHAPES)
+def test_float32_transform_matches_float64(name, shape):
+    x = np.random.default_rng(shape[0] * 7 + shape[1]).uniform(-1, 1, shape)
+    p64, p32 = wv.dwt2(x, name), wv.dwt2(x, name, dtype=np.float32)
+    bands64 = [p64.approx] + [b for d in p64.details for b in d]
+    bands32 = [p32.approx] + [b for d in p32.details for b in d]
+    for k, (a, b) in enumerate(zip(bands64, bands32)):
+        assert b.dtype == np.float32 and a.shape == b.shape
+        scale = max(1.0, float(np.abs(a).max(initial=0.0)))
+        np.testing.assert_allclose(b, a, atol=3e-6 * scale, err_msg=f"band {k}")
+    y = wv.idwt2(p32, name)
+    assert y.dtype == np.float32
+    np.testing.assert_allclose(y, x, atol=1e-5)
+    # positive sums: float32 variance propagation is accurate entry by entry
+    v = x * x
+    for lo, hi in ((None, None), (2 ** -0.5, 2 ** -0.5)):
+        q64 = wv.dwt2_variance(v, name, lo_sum=lo, hi_sum=hi)
+        q32 = wv.dwt2_variance(v, name, lo_sum=lo, hi_sum=hi, dtype=np.float32)
+        for a, b in zip([q64.approx] + [b for d in q64.details for b in d],
+                        [q32.approx] + [b for d in q32.details for b in d]):
+            np.testing.assert_allclose(b, a, rtol=2e-6, atol=1e-30)
+
+
+@pytest.mark.parametrize("name", BANKS)
+def test_blocked_float32_filters_equal_the_strided_contraction(name):
+    """2D float32 arrays take the matrix-product path along x; a trailing
+    channel axis takes the strided-window contraction: same values."""
+    x = np.random.default_rng(4).normal(size=(150, 77)).astype(np.float32)
+    p2 = wv.dwt2(x, name, dtype=np.float32)
+    p3 = wv.dwt2(x[..., None], name, dtype=np.float32)
+    for a, b in zip([p2.approx] + [b for d in p2.details for b in d],
+                    [p3.approx] + [b for d in p3.details for b in d]):
+        np.testing.assert_allclose(a, b[..., 0], rtol=1e-5, atol=1e-5)
+    np.testing.assert_allclose(wv.idwt2(p2, name), wv.idwt2(p3, name)[..., 0], atol=1e-5)
+
+
+@pytest.mark.parametrize("dtype", [np.float64, np.float32])
+@pytest.mark.parametrize("shape", [(1, 3), (3, 1), (1, 2), (4, 5), (33, 40)])
+def test_transforms_leave_their_input_untouched(dtype, shape):
+    x = np.random.default_rng(5).normal(size=shape).astype(dtype)
+    keep = x.copy()
+    for name in BANKS:
+        pyr = wv.dwt2(x, name, dtype=dtype)
+        copies = [b.copy() for b in [pyr.approx] + [b for d in pyr.details for b in d]]
+        wv.idwt2(pyr, name)
+        assert all(np.array_equal(a, b) for a, b in
+                   zip(copies, [pyr.approx] + [b for d in pyr.details for b in d]))
+    assert np.array_equal(x, keep)
+
+
+def test_dtype_must_be_float32_or_float64():
+    for bad in (np.int32, np.float16, np.complex128):
+        with pytest.raises(ValueError, match="dtype"):
+            wv.dwt2(np.ones((4, 4)), dtype=bad)
+
+
 @pytest.mark.parametrize("name", BANKS)
 def test_subband_shapes_are_non_expansive(name):
     pyr = wv.dwt2(np.zeros((13, 6)), name)
