@@ -33,8 +33,8 @@ the same samples), cornell 1.11e-2 -> 9.6e-3, dof 1.45e-2 -> 1.25e-2, glossy
 2.35e-2 -> 1.99e-2, motion_blur 1.69e-2 -> 1.43e-2, animated 7.5e-3 ->
 6.6e-3; 2 or 3 shifts leave soft_shadows at 7.4e-3, 16 shifts reach 7.0e-3
 and cost 4x more.  The gain holds at 8 and 32 spp on every scene (10-25 %).
-Cost: linear in ``shifts`` (reconstruction about 1.0 s per megapixel with 4 on
-two cores, 0.3 s with 1).
+Cost: linear in ``shifts`` (reconstruction at 1024 x 1024 on two cores: 0.42 s
+per megapixel with 4, 0.19 s with 1; ``tools/awr_speed.py``).
 
 Functional variance from sample subsets (Eq. 5, 6, 10)
 ------------------------------------------------------
@@ -154,11 +154,49 @@ contrast is uniformly high (binary visibility: penumbrae, defocus) coarse
 levels win as in the paper's Fig. 3.  ``sample_filter_sum`` trades between the
 two (higher: coarser).
 
+Precision (``precision``, our addition)
+---------------------------------------
+The transforms run in float32 by default (``"float64"``: float64 throughout);
+the input, the average over shifts and the output stay float64.  The soft
+threshold is applied as a correction, ``soft(w, t) = w - clip(w, -t, t)``, so
+each plane is reconstructed as ``img - synthesis(clip(W, -t, t))`` (perfect
+reconstruction; the coarsest scale coefficients are not touched, so they are
+not in the correction): the float64 input minus a synthesis of coefficients no
+larger than their thresholds.  Rounding enters in three places, each bounded:
+
+* the analysis: a coefficient errs by ~1e-7 of the filter-weighted input in
+  its support, so its clipped value by ``min(that, 2 t)``: at most its own
+  threshold, and nothing where the coefficient is far from ``t``;
+* the variance transform: every squared tap is positive, so each ``Delta^2``
+  is exact to a few float32 ulp (no cancellation);
+* the correction's synthesis: ~1e-7 of the correction, itself at most the
+  thresholds.
+
+Where no coefficient is clipped the input comes back exactly in either
+precision.  Measured (tests/core/test_awr.py): on a piecewise-smooth image the
+two precisions differ by under 1e-4 of the smallest noise sigma; next to a
+noiseless 1e4 emitter and a 5e3 line over a dark region with sigma = 5e-3
+(dynamic range 2e6) the dark pixels differ by 0.05 sigma (one shift) and 0.02
+sigma (four shifts).  The error estimate can differ more there, up to 30 % in
+a few pixels beside the line: SURE's indicator ``|w| <= t`` flips for
+coefficients within float32 rounding of their threshold.  Means above 1e25 or
+variances above 1e30 (float32 overflows at 3.4e38) switch to float64.
+Why float32: it halves the memory traffic and lets the filters along x (the
+contiguous axis, where the strided contraction cannot vectorise) run as
+blocked single-precision matrix products (``core.wavelets``).
+``tools/awr_speed.py --precision float32,float64`` (4 shifts, two cores, one
+run): 1024 x 1024 0.42 against 0.49 s per megapixel and 116 against 197 bytes
+per pixel traced; 512 x 512 0.56 against 0.82 s/MP.  (The rest of the speed-up
+of this version, 1.9-2.5x in all from 0.73 to 0.37 s/MP in one interleaved
+run, benchmark 1.05 -> 0.43 s/MP, is in either precision: fewer full-size
+temporaries, and strided views that hold the GIL for less time, so that the
+two transform threads overlap.)
+
 Cost: reconstruction is 3 transforms per channel and shift (analysis,
-squared-filter variance analysis, synthesis) plus one squared synthesis for
-the error, linear in pixels and in ``shifts``; channels and shifts run in
-parallel threads (``threads``), at most ``threads + 3`` jobs ahead, so peak
-memory does not grow with ``shifts``.
+squared-filter variance analysis, synthesis of the correction) plus one
+squared synthesis for the error, linear in pixels and in ``shifts``; channels
+and shifts run in parallel threads (``threads``), at most ``threads + 3`` jobs
+ahead, so peak memory does not grow with ``shifts``.
 """
 from __future__ import annotations
 
