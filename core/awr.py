@@ -165,8 +165,9 @@ not in the correction): the float64 input minus a synthesis of coefficients no
 larger than their thresholds.  Rounding enters in three places, each bounded:
 
 * the analysis: a coefficient errs by ~1e-7 of the filter-weighted input in
-  its support, so its clipped value by ``min(that, 2 t)``: at most its own
-  threshold, and nothing where the coefficient is far from ``t``;
+  its support, so its clipped value by ``min(that, 2 t)``: at most twice its
+  threshold, and nothing where the coefficient is beyond ``t`` by more than
+  that rounding;
 * the variance transform: every squared tap is positive, so each ``Delta^2``
   is exact to a few float32 ulp (no cancellation);
 * the correction's synthesis: ~1e-7 of the correction, itself at most the
@@ -298,7 +299,7 @@ class Params:
     precision: str = param(
         "float32", "Arithmetic of the reconstruction's transforms: float32 (default, about 2x "
         "faster; each coefficient's correction errs by at most ~1e-7 of the local signal "
-        "and never by more than its threshold) or float64 (exact to ~1e-15)",
+        "and never by more than twice its threshold) or float64 (exact to ~1e-15)",
         choices=("float32", "float64"))
 
 
@@ -552,7 +553,7 @@ def _plane_correction(img, rvar, nat_ratio, bank, levels, params):
     the thresholded pyramid gives ``img - synthesis(clip(W, -t, t))`` (perfect
     reconstruction; the coarsest scale coefficients are kept, so they are not
     in the correction).  Returning only the correction keeps the input exact
-    where nothing is clipped, and bounds each coefficient's rounding error by
+    where nothing is clipped, and bounds each coefficient's rounding error by twice
     its threshold ``t``.
 
     Returns (correction (H, W) or ``None`` when no threshold is positive, SURE
