@@ -796,7 +796,8 @@ def reconstruct(buf: Buffers, params: Params | None = None) -> MethodResult:
     -------
     MethodResult: image (H, W, 3), error (H, W) estimated squared error
     (SURE, averaged over RGB), info (wavelet, levels, ``zeroed_fraction`` of
-    wavelet coefficients that are zero after Eq. 11, ``missing_pixels``,
+    the untranslated transform's wavelet coefficients that are zero after
+    Eq. 11, ``missing_pixels``,
     ``unknown_variance_pixels``).
     """
     return wavelet_reconstruct(buf.color.mean, buf.variance_of_mean(), buf.n, params)

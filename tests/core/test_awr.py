@@ -187,6 +187,27 @@ def test_matches_independent_haar_implementation_with_pywavelets():
         np.testing.assert_allclose(res.image, _pywt_haar_soft(color, rvar), atol=1e-12)
 
 
+@pytest.mark.parametrize("wavelet", ["cdf97", "legall53"])
+def test_correction_form_equals_synthesis_of_the_soft_thresholded_pyramid(wavelet):
+    """The reconstruction subtracts synthesis(clip(W, -t, t)) from the input;
+    by hand: DWT, Eq. 10 thresholds, Eq. 11 soft threshold, synthesis."""
+    rng = np.random.default_rng(8)
+    h, w = 37, 52
+    truth = piecewise_smooth(h, w)
+    var = rng.uniform(0.001, 0.01, (h, w, 3))
+    color = truth + np.sqrt(var) * rng.standard_normal(truth.shape)
+    params = awr.Params(wavelet=wavelet, shifts=1, precision="float64")
+    got = awr.denoise(color, var, {}, params, spp=16).image
+    r = params.recon_filter_sum
+    for c in range(3):
+        pyr = wv.dwt2(color[..., c], wavelet)
+        dpyr = wv.dwt2_variance(var[..., c], wavelet, lo_sum=r, hi_sum=r)
+        details = [tuple(awr.soft_threshold(b, np.sqrt(v)) for b, v in zip(d, dv))
+                   for d, dv in zip(pyr.details, dpyr.details)]
+        want = wv.idwt2(wv.Pyramid(pyr.approx, details, pyr.axes), wavelet)
+        np.testing.assert_allclose(got[..., c], want, atol=1e-12)
+
+
 def _pywt_haar_soft(color, rvar):
     h, w = color.shape[:2]
     out = np.empty_like(color)
