@@ -660,18 +660,20 @@ def _natural_ratios(shape, levels, bank, r, d2sq):
     return det, ones_app / (g_app * np.maximum(dp.approx, 1e-300))
 
 
-def _shifted(x: np.ndarray, dy: int, dx: int, dtype=None) -> np.ndarray:
+def _shifted(x: np.ndarray, dy: int, dx: int) -> np.ndarray:
     """``x`` (H, W) translated by ``(dy, dx)`` against the wavelet grid: ``dy``
     rows and ``dx`` columns of half-sample symmetric extension prepended
-    (cropped off again after synthesis), as a new contiguous array of
-    ``dtype`` (default ``x``'s)."""
+    (cropped off again after synthesis), as a new C-contiguous array; ``x``
+    itself when there is nothing to prepend."""
     h, w = x.shape
-    dtype = x.dtype if dtype is None else dtype
+    if not dy and not dx:
+        return x
     if dy > h or dx > w:  # extension longer than the image: repeated mirroring
-        return np.pad(x, ((dy, 0), (dx, 0)), mode="symmetric").astype(dtype)
-    out = np.empty((h + dy, w + dx), dtype)
+        return np.pad(x, ((dy, 0), (dx, 0)), mode="symmetric")
+    out = np.empty((h + dy, w + dx), x.dtype)
     out[dy:, dx:] = x
-    out[:dy, dx:] = x[dy - 1::-1] if dy else x[:0]
+    if dy:
+        out[:dy, dx:] = x[dy - 1::-1]
     if dx:
         out[:, :dx] = out[:, 2 * dx - 1:dx - 1:-1] if dx > 1 else out[:, 1:2]
     return out
@@ -720,12 +722,16 @@ def wavelet_reconstruct(mean: np.ndarray, var: np.ndarray, n, params: Params | N
                   if not per_shift else None)
         per_shift.append((dy, dx, levels, ratios))
 
+    # contiguous planes in the transforms' precision, once (each shift copies
+    # them again with its extension)
+    mean_planes = [np.ascontiguousarray(prep.mean[..., ch], dtype) for ch in range(c)]
+    var_planes = [np.ascontiguousarray(rvar[..., ch], dtype) for ch in range(c)]
+
     def work(job):
         si, ch = job
         dy, dx, levels, ratios = per_shift[si]
-        return _plane_correction(_shifted(prep.mean[..., ch], dy, dx, dtype),
-                                 _shifted(rvar[..., ch], dy, dx, dtype), ratios, bank, levels,
-                                 params)
+        return _plane_correction(_shifted(mean_planes[ch], dy, dx), _shifted(var_planes[ch], dy, dx),
+                                 ratios, bank, levels, params)
 
     jobs = [(si, ch) for si in range(len(shifts)) for ch in range(c)]
     nt = _n_threads(params, len(jobs), h * w)
