@@ -185,9 +185,10 @@ variances above 1e30 (float32 overflows at 3.4e38) switch to float64.
 Why float32: it halves the memory traffic and lets the filters along x (the
 contiguous axis, where the strided contraction cannot vectorise) run as
 blocked single-precision matrix products (``core.wavelets``).
-``tools/awr_speed.py --precision float32,float64`` (4 shifts, two cores, one
-run): 1024 x 1024 0.42 against 0.49 s per megapixel and 116 against 197 bytes
-per pixel traced; 512 x 512 0.56 against 0.82 s/MP.  (The rest of the speed-up
+``tools/awr_speed.py --precision float32,float64`` (4 shifts, two cores):
+1024 x 1024 0.42 against 0.49 s per megapixel in one run, 0.44 against 0.66 in
+another, and 139 against 224 bytes per pixel traced; 512 x 512 0.55 against
+0.82-1.00 s/MP.  (The rest of the speed-up
 of this version, 1.9-2.5x in all from 0.73 to 0.37 s/MP in one interleaved
 run, benchmark 1.05 -> 0.43 s/MP, is in either precision: fewer full-size
 temporaries, and strided views that hold the GIL for less time, so that the
