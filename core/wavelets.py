@@ -299,7 +299,7 @@ def _sl(axis: int, ndim: int, s: slice) -> tuple:
     return tuple(idx)
 
 
-#: outputs per block of the matrix-product filter (``_sym_filter_blocks``);
+#: outputs per filter and block of the matrix products (``_blocked_filter``);
 #: 16 and 32 measured best at 512^2 .. 2048^2 (8: 1.7x slower, 128: 2x)
 _BLOCK = 16
 #: rows per matrix product: keeps every product below OpenBLAS's threading
@@ -329,28 +329,24 @@ def _gemm_blocks(src: np.ndarray, src_col: int, mat: np.ndarray, out: np.ndarray
                  out_col: int, nblk: int, in_step: int, out_step: int) -> None:
     """``out[:, c + j*out_step : ... + w_out] = src[:, s + j*in_step : ... + w_in]
     @ mat`` for ``j < nblk`` (``mat`` is ``(w_in, w_out)``, ``s = src_col``,
-    ``c = out_col``; ``src`` and ``out`` C-contiguous 2D), as one stacked
-    matrix product per ``_GEMM_ROWS`` rows (strided views, no copies), all in
-    one or two calls."""
+    ``c = out_col``; ``src`` and ``out`` C-contiguous 2D), as stacked matrix
+    products of at most ``_GEMM_ROWS`` rows each (strided views, no copies):
+    one call for the whole row chunks, one for the rows left over, the GIL
+    released throughout each."""
     if nblk <= 0:
         return
     w_in, w_out = mat.shape
     (rs_in, es_in), (rs_out, es_out) = src.strides, out.strides
     h = src.shape[0]
     hq = h // _GEMM_ROWS
-    if hq:  # (blocks, row chunks, rows, window): one call, the GIL released throughout
-        r = _GEMM_ROWS
-        v = _window(src, src_col * es_in, (nblk, hq, r, w_in),
-                    (in_step * es_in, r * rs_in, rs_in, es_in))
-        o = _window(out, out_col * es_out, (nblk, hq, r, w_out),
-                    (out_step * es_out, r * rs_out, rs_out, es_out), writeable=True)
-        np.matmul(v, mat, out=o)
-    if h > hq * _GEMM_ROWS:
-        y0 = hq * _GEMM_ROWS
-        v = _window(src, y0 * rs_in + src_col * es_in, (nblk, h - y0, w_in),
-                    (in_step * es_in, rs_in, es_in))
-        o = _window(out, y0 * rs_out + out_col * es_out, (nblk, h - y0, w_out),
-                    (out_step * es_out, rs_out, es_out), writeable=True)
+    for y0, chunks, rows in ((0, hq, _GEMM_ROWS), (hq * _GEMM_ROWS, 1, h - hq * _GEMM_ROWS)):
+        if not chunks or not rows:
+            continue
+        # (blocks, row chunks, rows, window)
+        v = _window(src, y0 * rs_in + src_col * es_in, (nblk, chunks, rows, w_in),
+                    (in_step * es_in, rows * rs_in, rs_in, es_in))
+        o = _window(out, y0 * rs_out + out_col * es_out, (nblk, chunks, rows, w_out),
+                    (out_step * es_out, rows * rs_out, rs_out, es_out), writeable=True)
         np.matmul(v, mat, out=o)
 
 
@@ -368,87 +364,55 @@ def _full_taps(half: np.ndarray, dtype) -> np.ndarray:
     return f
 
 
-def _block_matrix(full: np.ndarray, dtype) -> np.ndarray:
-    """``(2 B + K - 2, B)`` matrix whose column ``j`` holds the ``K`` taps at rows
-    ``2j .. 2j + K - 1``: a window of ``2 B + K - 2`` inputs times it gives ``B``
-    consecutive decimated outputs."""
-    key = (full.tobytes(), np.dtype(dtype).str)
+def _block_matrix(fulls: tuple, dtype) -> np.ndarray:
+    """Matrix of one block of decimated outputs from a window of inputs.
+
+    With ``P = len(fulls)`` filters of ``K`` taps (all the same length), the
+    ``P * B`` columns cycle through them and column ``q`` holds its filter at
+    rows ``q * 2 / P ..``: ``P = 1`` is one analysis filter (``B`` outputs at
+    input steps of 2), ``P = 2`` the polyphase synthesis pair (``2 B`` outputs,
+    even and odd interleaved as they are stored).  The first ``m`` columns
+    need the first ``(m - 1) * 2 / P + K`` rows."""
+    key = tuple(f.tobytes() for f in fulls) + (np.dtype(dtype).str,)
     m = _BLOCK_MATS.get(key)
     if m is None:
-        k = len(full)
-        m = np.zeros((2 * _BLOCK + k - 2, _BLOCK), dtype)
-        for j in range(_BLOCK):
-            m[2 * j:2 * j + k, j] = full
+        p, k = len(fulls), len(fulls[0])
+        step = 2 // p
+        m = np.zeros(((p * _BLOCK - 1) * step + k, p * _BLOCK), dtype)
+        for q in range(p * _BLOCK):
+            m[q * step:q * step + k, q] = fulls[q % p]
         m.setflags(write=False)
         _BLOCK_MATS[key] = m
     return m
 
 
-def _sym_filter_blocks(xe: np.ndarray, full: np.ndarray, center: int, count: int,
-                       out: np.ndarray | None) -> np.ndarray:
-    """``_sym_filter`` along the last axis of a 2D float32 array as matrix
-    products: ``B`` outputs at a time from a window of ``2 B + K - 2`` inputs
-    (BLAS sgemm).  Along the contiguous axis the strided-window contraction
-    cannot vectorise over rows (its inner loop is the ``K`` taps); this does,
-    at about 2x the multiply-adds (1024^2 float32, one thread: 1.7 ms against
-    3.8-6.8 ms per filter).  Same sums, different rounding order."""
-    length = (len(full) - 1) // 2
-    mat = _block_matrix(full, xe.dtype)
-    if out is None:
-        out = np.empty((xe.shape[0], count), xe.dtype)
-    s0 = center - length
-    full_blocks = count // _BLOCK
-    _gemm_blocks(xe, s0, mat, out, 0, full_blocks, 2 * _BLOCK, _BLOCK)
-    r = count - full_blocks * _BLOCK
-    if r:
-        i0 = full_blocks * _BLOCK
-        _gemm_blocks(xe, s0 + 2 * i0, np.ascontiguousarray(mat[:2 * r + 2 * length - 1, :r]),
-                     out, i0, 1, 0, 0)
+def _blocked_filter(xe: np.ndarray, start: int, fulls: tuple, out: np.ndarray) -> np.ndarray:
+    """Decimated filtering along the last axis of the C-contiguous 2D float32
+    ``xe`` as blocked matrix products (BLAS sgemm) into the C-contiguous
+    ``out``: output column ``q`` is filter ``fulls[q % P]`` applied to the
+    window of ``xe`` starting at column ``start + q * 2 / P`` (``_block_matrix``).
+
+    Along the contiguous axis the strided-window contraction cannot vectorise
+    over rows (its inner loop is the ``K`` taps); this does, at about 2x the
+    multiply-adds (1024^2 float32, one thread: 1.7 ms against 3.8-6.8 ms per
+    filter).  Same sums as the contraction, in a different rounding order."""
+    mat = _block_matrix(fulls, xe.dtype)
+    step, k = 2 // len(fulls), len(fulls[0])
+    cols = mat.shape[1]
+    n = out.shape[1]
+    full_blocks = n // cols
+    _gemm_blocks(xe, start, mat, out, 0, full_blocks, cols * step, cols)
+    m = n - full_blocks * cols
+    if m:
+        _gemm_blocks(xe, start + full_blocks * cols * step,
+                     np.ascontiguousarray(mat[:(m - 1) * step + k, :m]), out, full_blocks * cols,
+                     1, 0, 0)
     return out
 
 
 def _blocked(x: np.ndarray, axis: int) -> bool:
     """Whether filters along ``axis`` of ``x`` run as blocked matrix products."""
     return x.dtype == np.float32 and x.ndim == 2 and axis == 1
-
-
-def _interleave_matrix(f_even: np.ndarray, f_odd: np.ndarray, dtype) -> np.ndarray:
-    """``(2 B + K - 1, 2 B)`` matrix: column ``2j`` holds ``f_even`` at rows
-    ``2j ..``, column ``2j + 1`` holds ``f_odd`` at rows ``2j + 1 ..`` (the
-    polyphase synthesis, outputs interleaved as they are stored)."""
-    key = (f_even.tobytes(), f_odd.tobytes(), np.dtype(dtype).str)
-    m = _BLOCK_MATS.get(key)
-    if m is None:
-        k = len(f_even)
-        m = np.zeros((2 * _BLOCK + k - 1, 2 * _BLOCK), dtype)
-        for j in range(_BLOCK):
-            m[2 * j:2 * j + k, 2 * j] = f_even
-            m[2 * j + 1:2 * j + 1 + k, 2 * j + 1] = f_odd
-        m.setflags(write=False)
-        _BLOCK_MATS[key] = m
-    return m
-
-
-def _synthesis_blocks(ye: np.ndarray, f_even: np.ndarray, f_odd: np.ndarray, pad: int,
-                      out: np.ndarray) -> np.ndarray:
-    """Both polyphase filters of ``_synthesis_axis`` along the last axis of a 2D
-    float32 array, as blocked matrix products writing ``out`` (its length ``n``
-    outputs) contiguously: ``out[2i] = sum_m f_even[m] ye[pad + 2i - m]``,
-    ``out[2i + 1] = sum_m f_odd[m] ye[pad + 1 + 2i - m]``."""
-    full_e = _full_taps(f_even, ye.dtype)
-    full_o = _full_taps(f_odd, ye.dtype)
-    length = len(f_even) - 1
-    mat = _interleave_matrix(full_e, full_o, ye.dtype)
-    n = out.shape[1]
-    s0 = pad - length
-    full_blocks = n // (2 * _BLOCK)
-    _gemm_blocks(ye, s0, mat, out, 0, full_blocks, 2 * _BLOCK, 2 * _BLOCK)
-    m = n - full_blocks * 2 * _BLOCK
-    if m:
-        o0 = full_blocks * 2 * _BLOCK
-        _gemm_blocks(ye, s0 + o0, np.ascontiguousarray(mat[:m + 2 * length, :m]), out, o0,
-                     1, 0, 0)
-    return out
 
 
 def _sym_filter(xe: np.ndarray, axis: int, half: np.ndarray, center: int, count: int,
@@ -459,7 +423,9 @@ def _sym_filter(xe: np.ndarray, axis: int, half: np.ndarray, center: int, count:
     length = len(half) - 1
     full = _full_taps(half, xe.dtype)
     if _blocked(xe, axis) and length > 0:
-        return _sym_filter_blocks(xe, full, center, count, out)
+        if out is None:
+            out = np.empty((xe.shape[0], count), xe.dtype)
+        return _blocked_filter(xe, center - length, (full,), out)
     st = xe.strides
     shape = xe.shape[:axis] + (count,) + xe.shape[axis + 1:] + (2 * length + 1,)
     strides = st[:axis] + (2 * st[axis],) + st[axis + 1:] + (st[axis],)
@@ -523,8 +489,9 @@ def _synthesis_axis(s: np.ndarray, d: np.ndarray, axis: int, bank: FilterBank) -
     f_even, f_odd = _poly_filters(bank)
     pad = max(len(f_even), len(f_odd)) + 1
     ye = _extend(out, axis, pad)
-    if _blocked(out, axis):
-        return _synthesis_blocks(ye, f_even, f_odd, pad, out)
+    if _blocked(out, axis):  # out[2i] = f_even * ye[pad + 2i - .], out[2i + 1] = f_odd * ...
+        return _blocked_filter(ye, pad - (len(f_even) - 1),
+                               (_full_taps(f_even, ye.dtype), _full_taps(f_odd, ye.dtype)), out)
     _sym_filter(ye, axis, f_even, pad, ns, out=out[_sl(axis, nd_, slice(0, n, 2))])
     _sym_filter(ye, axis, f_odd, pad + 1, nd, out=out[_sl(axis, nd_, slice(1, n, 2))])
     return out
