@@ -43,6 +43,10 @@ FEATURE_CHANNELS = {
     "alpha": 1,
 }
 
+#: a depth at or above this is "infinite" (Blender's Z pass writes 1e10 where no
+#: surface was hit)
+FAR_DEPTH = 1e9
+
 #: Luminance weights (Rec. 709), used for relative errors and the var sampler.
 LUMA = np.array([0.2126, 0.7152, 0.0722])
 
@@ -231,3 +235,16 @@ def _chan_update(stat: Stat, sl, mean_b, wb, cross, m2_b=None):
 def luminance(rgb: np.ndarray) -> np.ndarray:
     """(..., 3) -> (...) Rec. 709 luminance."""
     return rgb @ LUMA
+
+
+def is_background(position: np.ndarray, depth: np.ndarray | None = None) -> np.ndarray:
+    """(H, W) bool: pixels where no surface was hit.  Cycles writes Position
+    exactly (0, 0, 0) there; with a depth pass the depth must also be 0 or
+    "infinite" (>= ``FAR_DEPTH``), so a surface through the world origin is not
+    taken for background.  ``position`` (H, W, 3), ``depth`` (H, W[, 1])."""
+    bg = np.all(np.asarray(position) == 0.0, axis=-1)
+    if depth is not None:
+        d = np.asarray(depth)
+        d = d[..., 0] if d.ndim == 3 else d
+        bg &= (d == 0.0) | (d >= FAR_DEPTH)
+    return bg

@@ -6,6 +6,7 @@ No bpy here.  Channel names follow Blender's multilayer convention
 """
 from __future__ import annotations
 
+import contextlib
 import os
 import tempfile
 
@@ -156,9 +157,40 @@ def temp_beside(path: str, suffix: str) -> str:
     return tmp
 
 
-def _atomic_write(path: str, spec, data) -> None:
-    tmp = temp_beside(path, os.path.splitext(path)[1] or ".exr")
+@contextlib.contextmanager
+def atomic_path(path: str, suffix: str | None = None):
+    """Write-then-rename: yields a temporary path in ``path``'s folder; when the
+    block ends normally it replaces ``path``, otherwise it is removed, so a
+    reader never sees a half-written file.  ``suffix`` defaults to ``path``'s
+    extension (writers that pick the format from the name need it)."""
+    tmp = temp_beside(path, os.path.splitext(path)[1] if suffix is None else suffix)
     try:
+        yield tmp
+        os.replace(tmp, path)
+    finally:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+
+
+def write_text(path: str, text: str) -> None:
+    """Write a text file atomically (:func:`atomic_path`)."""
+    with atomic_path(path) as tmp:
+        with open(tmp, "w", encoding="utf-8") as f:
+            f.write(text)
+
+
+def read_reference(path: str, shape=None) -> np.ndarray:
+    """(H, W, 3) float64 reference image (:func:`read_rgb`) checked against the
+    render's ``shape`` (H, W); ImageFileError names both sizes on a mismatch."""
+    ref = read_rgb(path)
+    if shape is not None and ref.shape[:2] != tuple(shape):
+        raise ImageFileError(f"reference {path} is {ref.shape[1]}x{ref.shape[0]}, the render is "
+                             f"{shape[1]}x{shape[0]}")
+    return ref
+
+
+def _atomic_write(path: str, spec, data) -> None:
+    with atomic_path(path, os.path.splitext(path)[1] or ".exr") as tmp:
         out = oiio.ImageOutput.create(tmp)
         if out is None:
             raise ImageFileError(f"{path}: no writer for this format ({_oiio_error()})")
@@ -168,11 +200,6 @@ def _atomic_write(path: str, spec, data) -> None:
         out.close()
         if not ok:
             raise ImageFileError(f"{path}: write failed ({out.geterror()})")
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
 
 
 def _oiio_error(obj=None) -> str:

@@ -1,25 +1,19 @@
-"""What every method returns, and the shared sample-allocation helpers.
+"""The method contract, what every method returns, and the shared
+sample-allocation helpers.
 
-A method module in ``core/`` (``core/var.py``, ``core/awr.py``, ``core/lp.py``,
-``core/rhf.py``) exposes:
-
-``PASSES``
-    tuple of feature pass names it reads (subset of ``buffers.FEATURE_CHANNELS``).
-``Params``
-    a dataclass of its parameters with the paper's defaults.  Each field has
-    ``metadata={"help": "...what it trades...", "min": .., "max": ..}``; the CLI and
-    the panel are generated from it.
-``reconstruct(buf: Buffers, params) -> MethodResult``
-    the final image from the accumulated samples.
-``sample_map(buf, result, budget, params, state) -> (H, W) int64``
-    new samples per pixel for the next iteration; sums to ``budget`` (ties and
-    rounding may leave it off by at most a few samples).  ``state`` is a dict the
-    loop keeps between iterations for the method's own use (e.g. the var
-    sampler's threshold tau).
+A method is any object satisfying :class:`Method`; the four seed methods and
+``uniform`` are modules of ``core/`` registered in ``core/methods.py``, and
+wrappers (``core.oracle.OracleMethod``, ``core.var.REPROJECT``) are objects
+with the same members.  The render loop (``core/pipeline.py``) reads nothing
+else.  Each method module also offers the array-level entry
+``denoise(color, color_var, features=None, feature_var=None, n=None,
+params=None) -> MethodResult`` (same signature everywhere): the method's
+reconstruction of plain arrays, for callers without a Buffers object.
 """
 from __future__ import annotations
 
 from dataclasses import dataclass, field, fields
+from typing import Any, Protocol, runtime_checkable
 
 import numpy as np
 
@@ -31,12 +25,72 @@ class MethodResult:
     """image : (H, W, 3) float64 reconstructed image.
     error : (H, W) float64 estimated per-pixel squared error of ``image``
         (absolute, averaged over RGB).
-    info : dict of scalar diagnostics (e.g. LP's centre-pixel fraction).
+    info : dict of scalar diagnostics (e.g. LP's centre-pixel fraction), for
+        reports only: no sampler reads it.
+    dimension : model dimension ``d`` of the reconstruction (LP: mean TSVD
+        rank; RHF: active regression features), which sets the exponent of
+        :func:`sampling_gain`; None for methods without a regression model.
+    fit : the method's own model of this reconstruction, reused by its sampler
+        (LP: the ``LPFit`` with per-pixel error reductions); None otherwise.
     """
 
     image: np.ndarray
     error: np.ndarray
     info: dict = field(default_factory=dict)
+    dimension: float | None = None
+    fit: Any = None
+
+
+@runtime_checkable
+class Method(Protocol):
+    """What the render loop needs of a method; every member is declared by
+    every method (no defaults read with ``getattr``).
+
+    NAME : str, the name reports and checkpoints use.
+    PASSES : tuple of feature pass names it reads (``buffers.FEATURE_CHANNELS``).
+    Params : dataclass of its parameters with the paper's defaults; each field
+        made by :func:`param` (help, min, max), from which the CLI and the
+        panel are generated.
+    ADAPTIVE : bool; False: the loop renders the whole budget uniformly in its
+        initial pass and never asks for a map.
+    SAMPLER_USES_RESULT : bool; False: ``sample_map`` ignores ``result`` and
+        the loop does not reconstruct between iterations (AWR, var).
+    """
+
+    NAME: str
+    PASSES: tuple
+    Params: type
+    ADAPTIVE: bool
+    SAMPLER_USES_RESULT: bool
+
+    def reconstruct(self, buf, params) -> MethodResult:
+        """The final image from the accumulated samples."""
+
+    def sample_map(self, buf, result: MethodResult | None, budget: int, params,
+                   state: dict) -> np.ndarray:
+        """(H, W) int64 new samples per pixel summing to ``budget`` (ties and
+        rounding may leave it off by a few samples).  ``result`` is the
+        reconstruction of ``buf`` (None when ``SAMPLER_USES_RESULT`` is False);
+        ``state`` is the method's own dict, kept by the loop between
+        iterations and checkpointed."""
+
+
+def gain_exponent(dimension) -> np.ndarray | float:
+    """``4 / (d + 4)``: the rate at which a local regression's error falls with
+    the sample count, ``n^(-4/(d+4))`` for a model of dimension ``d`` (Moon et
+    al. 2014, used by LP Sec. 5.2).  ``d`` scalar or array, clamped to >= 0."""
+    d = np.maximum(np.asarray(dimension, np.float64), 0.0)
+    return 4.0 / (d + 4.0)
+
+
+def sampling_gain(error: np.ndarray, n: np.ndarray, dimension=None) -> np.ndarray:
+    """Error reduction of one more sample, ``err_i n_i^(-4/(d+4))`` (LP Sec.
+    5.2); with ``dimension`` None the Monte Carlo rate ``err_i / n_i``.  ``n``
+    is clamped to >= 1 (pixels without samples count as one)."""
+    n = np.asarray(n, np.float64)
+    n = np.where(np.isfinite(n) & (n >= 1.0), n, 1.0)
+    p = 1.0 if dimension is None else gain_exponent(dimension)
+    return np.asarray(error, np.float64) * n ** (-p)
 
 
 def relative_error(error: np.ndarray, image: np.ndarray, eps: float = 1e-3) -> np.ndarray:

@@ -53,6 +53,13 @@ def error_correlation(estimated: np.ndarray, x: np.ndarray, ref: np.ndarray) -> 
     return float((a * b).sum() / den) if den > 0 else 0.0
 
 
+def summary(image: np.ndarray, error: np.ndarray, reference: np.ndarray) -> dict:
+    """The figures every run reports against a reference: ``relmse``, ``smape``
+    and ``error_correlation`` (of the estimated squared error ``error``)."""
+    return {"relmse": relmse(image, reference), "smape": smape(image, reference),
+            "error_correlation": error_correlation(error, image, reference)}
+
+
 def _check(x, r):
     if x.shape != r.shape:
         raise ValueError(f"image is {x.shape[:2]} but the reference is {r.shape[:2]}")

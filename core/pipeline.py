@@ -211,20 +211,14 @@ class AdaptiveRun:
         yield Progress("done", self.iteration, self._fraction(), "sampling done")
 
     def _initial_pass(self):
-        base, extra = divmod(self.initial_spp, self.subsets)
-        offset = 0
-        for s in range(self.subsets):
-            count = base + (1 if s < extra else 0)
-            task = regions.RegionTask(0, 0, self.width, self.height, count,
-                                      frame=self.options.frame, offset=offset)
-            if self.buffers is None:
-                self.buffers = Buffers.empty(self.height, self.width, self.feature_names)
+        tasks = subset_tasks(self.width, self.height, self.initial_spp, self.subsets, self.options.frame)
+        self.buffers = Buffers.empty(self.height, self.width, self.feature_names)
+        for s, task in enumerate(tasks):
             self._render_task(task)
-            offset += count
             yield Progress("initial", 0, self._fraction(),
-                           f"initial pass: subset {s + 1}/{self.subsets} ({count} spp)",
-                           s + 1, self.subsets)
-        self.next_index[:] = offset
+                           f"initial pass: subset {s + 1}/{len(tasks)} ({task.samples} spp)",
+                           s + 1, len(tasks))
+        self.next_index[:] = tasks[-1].offset + tasks[-1].samples
 
     def _capped(self, counts: np.ndarray) -> np.ndarray:
         """Apply ``Options.max_pixel_share`` to a map (same total when possible)."""
@@ -243,13 +237,7 @@ class AdaptiveRun:
         dt = time.perf_counter() - t0
         self.timing.render += dt
         t0 = time.perf_counter()
-        color = np.asarray(color, np.float64)
-        feats = dict(feats)
-        if "alpha" not in feats:
-            feats["alpha"] = color[:, :, 3:4] if color.shape[2] >= 4 else np.ones(color.shape[:2] + (1,))
-        self.buffers.merge_group(color[:, :, :3], task.samples,
-                                 {k: v for k, v in feats.items() if k in self.buffers.features},
-                                 region=(task.x0, task.y0, task.x1, task.y1))
+        merge_render(self.buffers, task, color, feats)
         self.tasks_rendered += 1
         self.timing.overhead += time.perf_counter() - t0
 
@@ -374,6 +362,45 @@ class AdaptiveRun:
         self.overshoot = int(meta["overshoot"])
         self.history = list(meta.get("history", []))
         self.method_state = pickle.loads(bytes(data["method_state"]))
+
+
+def subset_tasks(width: int, height: int, spp: int, subsets: int, frame: int = 0,
+                 offset: int = 0) -> list:
+    """Full-frame tasks rendering ``spp`` samples as ``subsets`` disjoint,
+    consecutive sample subsets starting at ``offset`` (sizes differ by at most
+    one): merged, they are one ``spp`` render with a variance estimate of
+    ``subsets - 1`` degrees of freedom (``core/buffers.py``)."""
+    k = max(1, min(int(subsets), int(spp)))
+    base, extra = divmod(int(spp), k)
+    tasks = []
+    for s in range(k):
+        count = base + (1 if s < extra else 0)
+        tasks.append(regions.RegionTask(0, 0, int(width), int(height), count, frame=frame, offset=offset))
+        offset += count
+    return tasks
+
+
+def merge_render(buffers: Buffers, task, color, features) -> None:
+    """Merge one rendered task (an executor's ``(color, features)``) into
+    ``buffers`` as one sample group over the task's rectangle.  Alpha
+    (``color``'s 4th channel, 1 without one) rides along as the ``alpha``
+    pass; passes ``buffers`` does not keep are dropped."""
+    color = np.asarray(color, np.float64)
+    feats = dict(features)
+    if "alpha" not in feats:
+        feats["alpha"] = color[:, :, 3:4] if color.shape[2] >= 4 else np.ones(color.shape[:2] + (1,))
+    buffers.merge_group(color[:, :, :3], task.samples,
+                        {k: v for k, v in feats.items() if k in buffers.features},
+                        region=(task.x0, task.y0, task.x1, task.y1))
+
+
+def render_subsets(executor, buffers: Buffers, spp: int, subsets: int, frame: int = 0) -> Buffers:
+    """Render ``spp`` samples of the executor's whole domain as sample subsets
+    (:func:`subset_tasks`) and merge them into ``buffers``; returns it."""
+    h, w = executor.size
+    for task in subset_tasks(w, h, spp, subsets, frame):
+        merge_render(buffers, task, *executor.render(task))
+    return buffers
 
 
 def _options_key(o: Options) -> dict:
