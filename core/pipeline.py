@@ -40,7 +40,7 @@ import numpy as np
 from . import methods, regions
 from .buffers import Buffers, Stat
 from .io import temp_beside
-from .method import allocate, consistency_guard, params_from_dict
+from .method import Method, allocate, consistency_guard, params_from_dict
 
 CHECKPOINT_VERSION = 1
 TOP_UP = 3
@@ -107,14 +107,17 @@ class Timing:
 class AdaptiveRun:
     """State of one adaptive render of one frame."""
 
-    def __init__(self, executor, options: Options, checkpoint: str | None = None, prior=None):
-        """``prior``: optional callable ``prior(run) -> Buffers | None`` called
-        once after the initial pass; the Buffers it returns (e.g. samples
-        reprojected from the previous frame) are merged in and counted in
-        ``reused``, not against the render budget."""
+    def __init__(self, executor, options: Options, checkpoint: str | None = None, prior=None,
+                 method: Method | None = None):
+        """``method``: the :class:`core.method.Method` to run (default: the
+        registered method ``options.method``; wrappers such as the oracle are
+        passed here).  ``prior``: optional callable ``prior(run) -> Buffers |
+        None`` called once after the initial pass; the Buffers it returns (e.g.
+        samples reprojected from the previous frame) are merged in and counted
+        in ``reused``, not against the render budget."""
         self.executor = executor
         self.options = options
-        self.method = methods.get(options.method)
+        self.method = methods.get(options.method) if method is None else method
         self.params = params_from_dict(self.method.Params, options.params)
         if options.spp <= 0:
             raise ValueError("spp must be positive")

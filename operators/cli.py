@@ -55,7 +55,11 @@ def method_params(args, method: str) -> dict:
     return {k[len(prefix):]: v for k, v in vars(args).items() if k.startswith(prefix) and v is not None}
 
 
-def build_parser(blender_command: bool = False) -> argparse.ArgumentParser:
+def build_parser(blender_command: bool = False, extra_commands=()) -> argparse.ArgumentParser:
+    """The parser of the shipped commands (render, denoise), plus
+    ``extra_commands``: objects with ``NAME``, ``HELP``, ``add_arguments(parser)``
+    and ``main(args) -> int`` (the repository's developer tools add ``bench``
+    and ``references`` this way; the extension ships without them)."""
     prog = "blender -b scene.blend -c cycles_adaptive" if blender_command else "cycles-adaptive"
     p = argparse.ArgumentParser(prog=prog, description="Adaptive rendering and denoising for Cycles.")
     sub = p.add_subparsers(dest="command", required=True)
@@ -115,18 +119,13 @@ def build_parser(blender_command: bool = False) -> argparse.ArgumentParser:
                    "errors from their own sample mean fall back to it (0: off)")
     add_method_params(d, methods.DENOISERS)
 
-    b = sub.add_parser("bench", help="measure the speed/accuracy trade against uniform, "
-                       "Cycles adaptive sampling and OIDN")
-    ref = sub.add_parser("references", help="render (and cache) the high-spp references of the "
-                         "sample scenes")
-    from . import bench, references
-    bench.add_arguments(b)
-    references.add_arguments(ref)
+    for cmd in extra_commands:
+        cmd.add_arguments(sub.add_parser(cmd.NAME, help=cmd.HELP))
     return p
 
 
-def main(argv=None, blender_command: bool = False) -> int:
-    parser = build_parser(blender_command)
+def main(argv=None, blender_command: bool = False, extra_commands=()) -> int:
+    parser = build_parser(blender_command, extra_commands)
     try:
         args = parser.parse_args(argv)
     except SystemExit as exc:  # argparse prints its own message
@@ -136,12 +135,9 @@ def main(argv=None, blender_command: bool = False) -> int:
             return cmd_render(args, blender_command)
         if args.command == "denoise":
             return cmd_denoise(args)
-        if args.command == "bench":
-            from . import bench
-            return bench.main(args)
-        if args.command == "references":
-            from . import references
-            return references.main(args)
+        for cmd in extra_commands:
+            if args.command == cmd.NAME:
+                return cmd.main(args)
     except KeyboardInterrupt:
         print("interrupted", file=sys.stderr)
         return EXIT_INTERRUPT
@@ -268,8 +264,8 @@ def cmd_denoise(args) -> int:
     from ..core import io as imageio
     from ..core import metrics
     from ..core.method import consistency_guard, params_from_dict
-    from .job import (JobError, buffers_from_passes, buffers_to_passes, load_reference,
-                      peak_rss_mb, preview_path)
+    from ..core.resources import peak_rss_mb
+    from .job import JobError, buffers_from_passes, buffers_to_passes, load_reference, preview_path
     t0 = time.perf_counter()
     out = os.path.abspath(args.out or os.path.splitext(args.passes)[0] + f".{args.method}.exr")
     imageio.check_writable(out, args.overwrite)

@@ -17,7 +17,6 @@ from __future__ import annotations
 
 import json
 import os
-import resource
 import time
 
 import numpy as np
@@ -26,6 +25,7 @@ from ..core import io as imageio
 from ..core import metrics
 from ..core.buffers import Buffers, Stat
 from ..core.pipeline import AdaptiveRun, Options
+from ..core.resources import peak_rss_mb
 
 OUTPUT_VERSION = "1"
 
@@ -40,10 +40,6 @@ def checkpoint_path(out: str) -> str:
 
 def preview_path(out: str) -> str:
     return os.path.splitext(out)[0] + ".png"
-
-
-def peak_rss_mb() -> float:
-    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
 
 
 def buffers_to_passes(buf: Buffers, image, error) -> dict:
