@@ -5,14 +5,14 @@ own register()/unregister(); this file only calls them in order (and in reverse
 to unregister).  ``core/`` is pure numpy and never imported with bpy side effects.
 """
 
-_MODULES = ()
 _cli_handle = None
 
 
 def _modules():
-    from .addon import props, panel, display
+    """Modules that define Blender classes, in registration order."""
+    from .addon import panel, props
     from .operators import render_op
-    return (props, display, render_op, panel)
+    return (props, render_op, panel)
 
 
 def register():

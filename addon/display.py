@@ -52,11 +52,3 @@ def show_result(image: np.ndarray, samples: np.ndarray, error: np.ndarray, alpha
                 area.spaces.active.image = res
                 area.tag_redraw()
     return res
-
-
-def register():
-    pass
-
-
-def unregister():
-    pass

@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import bpy
 
+from ..core.pipeline import option_fields
 from .props import _param_classes
 
 
@@ -23,14 +24,8 @@ class CYCLESADAPTIVE_PT_panel(bpy.types.Panel):
         s = context.scene.cycles_adaptive
         col = layout.column()
         col.prop(s, "method")
-        col.prop(s, "spp")
-        col.prop(s, "initial_spp")
-        col.prop(s, "subsets")
-        col.prop(s, "iterations")
-        col.prop(s, "max_seconds")
-        col.prop(s, "max_pixel_share")
-        col.prop(s, "guard_z")
-        col.prop(s, "seed")
+        for f in option_fields("ui"):
+            col.prop(s, f.name)
         col.prop(s, "output_path")
         col.prop(s, "frame_range")
         if s.frame_range:
@@ -59,9 +54,4 @@ class CYCLESADAPTIVE_PT_panel(bpy.types.Panel):
                 layout.label(text=s.status)
 
 
-def register():
-    bpy.utils.register_class(CYCLESADAPTIVE_PT_panel)
-
-
-def unregister():
-    bpy.utils.unregister_class(CYCLESADAPTIVE_PT_panel)
+register, unregister = bpy.utils.register_classes_factory((CYCLESADAPTIVE_PT_panel,))

@@ -14,6 +14,7 @@ from bpy.props import (BoolProperty, EnumProperty, FloatProperty, IntProperty, P
                        StringProperty)
 
 from ..core import methods
+from ..core.pipeline import Options, option_fields
 
 METHOD_ITEMS = [
     ("var", "Variance (Schalk 2018)", "Welford variance sampler with min/max spp; no reconstruction"),
@@ -26,28 +27,32 @@ METHOD_ITEMS = [
 _param_classes: dict = {}
 
 
-def _prop_for(f, method):
+def _label(f) -> str:
+    return f.metadata.get("label") or f.name.replace("_", " ").title()
+
+
+def prop_for(f):
+    """A bpy property from a ``param()`` dataclass field (method Params or the
+    loop's Options): its default, ``help`` as tooltip, ``min``/``max`` (the
+    metadata's ``ui_min``, ``soft_max``, ``subtype`` where given)."""
     default = f.default if f.default is not MISSING else None
-    desc = f.metadata.get("help", f.name)
-    name = f.name.replace("_", " ").title()
-    lo, hi = f.metadata.get("min"), f.metadata.get("max")
+    md = f.metadata
+    desc = md.get("help", f.name)
+    name = _label(f)
+    lo = md.get("ui_min", md.get("min"))
+    hi = md.get("max")
     if isinstance(default, bool):
         return BoolProperty(name=name, description=desc, default=default)
-    if isinstance(default, int):
-        kw = {}
-        if lo is not None:
-            kw["min"] = int(lo)
-        if hi is not None:
-            kw["max"] = int(hi)
-        return IntProperty(name=name, description=desc, default=default, **kw)
-    if isinstance(default, float):
-        kw = {}
-        if lo is not None:
-            kw["min"] = float(lo)
-        if hi is not None:
-            kw["max"] = float(hi)
+    if isinstance(default, (int, float)):
+        num = int if isinstance(default, int) else float
+        kw = {k: num(v) for k, v in (("min", lo), ("max", hi), ("soft_max", md.get("soft_max")))
+              if v is not None}
+        if md.get("subtype"):
+            kw["subtype"] = md["subtype"]
+        if num is int:
+            return IntProperty(name=name, description=desc, default=default, **kw)
         return FloatProperty(name=name, description=desc, default=default, precision=4, **kw)
-    choices = f.metadata.get("choices")
+    choices = md.get("choices")
     if choices:
         return EnumProperty(name=name, description=desc, default=default,
                             items=[(c, c, desc) for c in choices])
@@ -58,7 +63,7 @@ def _param_group(method: str):
     ann = {}
     try:
         for f in methods.param_fields(method):
-            ann[f.name] = _prop_for(f, method)
+            ann[f.name] = prop_for(f)
     except ImportError:
         pass
     return type(f"CYCLESADAPTIVE_PG_params_{method}", (bpy.types.PropertyGroup,),
@@ -74,33 +79,20 @@ def method_params(settings, method: str) -> dict:
     return {k: getattr(group, k) for k in cls.__annotations__}
 
 
+def options(scene):
+    """The loop's Options from the panel's settings of ``scene`` (the same
+    fields the CLI's flags set; method parameters from their groups)."""
+    s = scene.cycles_adaptive
+    return Options(method=s.method, frame=scene.frame_current, params=method_params(s, s.method),
+                   **{f.name: getattr(s, f.name) for f in option_fields("ui")})
+
+
 class CYCLESADAPTIVE_PG_settings(bpy.types.PropertyGroup):
-    method: EnumProperty(name="Method", items=METHOD_ITEMS, default="lp",
+    """Panel settings: the loop's Options (generated, see ``register``) plus
+    output, frame range and progress."""
+
+    method: EnumProperty(name="Method", items=METHOD_ITEMS, default=Options().method,
                          description="Adaptive method: where to put samples and how to reconstruct")
-    spp: FloatProperty(name="Samples per Pixel", default=16.0, min=1.0, soft_max=4096.0,
-                       description="Mean samples per pixel of the whole run (initial pass included). "
-                                   "More: slower, more accurate")
-    initial_spp: IntProperty(name="Initial Samples", default=4, min=1, soft_max=64,
-                             description="Samples per pixel of the first, uniform pass. More: better "
-                                         "first error estimate, less budget left to adapt")
-    subsets: IntProperty(name="Subsets", default=4, min=1, max=64,
-                         description="Sample subsets of the first pass; the variance estimate has "
-                                     "subsets-1 degrees of freedom. More: steadier estimate, a few "
-                                     "more full-frame renders")
-    iterations: IntProperty(name="Iterations", default=4, min=1, max=64,
-                            description="Adaptive iterations after the first pass. More: sample map "
-                                        "follows the error more closely, more per-render overhead")
-    max_pixel_share: FloatProperty(name="Max Pixel Share", default=2.0, min=0.0, soft_max=64.0,
-                                   description="Most samples one pixel may get in an iteration, as a "
-                                               "multiple of the iteration's mean (0: no cap). Lower "
-                                               "spreads samples evenly, higher follows the map's peaks")
-    guard_z: FloatProperty(name="Consistency Guard", default=3.0, min=0.0, soft_max=10.0,
-                           description="Pixels whose reconstruction is more than this many standard "
-                                       "errors from their own samples keep their sample mean (0: off). "
-                                       "Lower trusts the reconstruction less")
-    seed: IntProperty(name="Seed", default=0, min=0, description="Cycles seed of the run")
-    max_seconds: FloatProperty(name="Time Limit", default=0.0, min=0.0, subtype="TIME_ABSOLUTE",
-                               description="Stop sampling after this many seconds (0: no limit)")
     output_path: StringProperty(name="Output", subtype="FILE_PATH", default="//adaptive.exr",
                                 description="Multilayer EXR written after the run (a PNG preview "
                                             "goes beside it)")
@@ -124,6 +116,8 @@ class CYCLESADAPTIVE_PG_settings(bpy.types.PropertyGroup):
 
 
 def register():
+    for f in option_fields("ui"):
+        CYCLESADAPTIVE_PG_settings.__annotations__[f.name] = prop_for(f)
     for m in list(methods.METHODS) + list(methods.STAGES):
         cls = _param_group(m)
         _param_classes[m] = cls

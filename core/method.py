@@ -162,17 +162,30 @@ def params_from_dict(cls, values: dict | None):
     """Build a ``Params`` dataclass from a dict, ignoring unknown keys, and
     checking each value against the field's ``min``/``max`` metadata."""
     values = dict(values or {})
-    kwargs = {}
-    for f in fields(cls):
-        if f.name in values and values[f.name] is not None:
-            v = values[f.name]
-            lo, hi = f.metadata.get("min"), f.metadata.get("max")
-            if isinstance(v, (int, float)) and not isinstance(v, bool):
-                if lo is not None and v < lo or hi is not None and v > hi:
-                    raise ValueError(f"{cls.__module__.split('.')[-1]} parameter {f.name}={v} "
-                                     f"outside [{lo}, {hi}]")
-            kwargs[f.name] = v
-    return cls(**kwargs)
+    kwargs = {f.name: values[f.name] for f in fields(cls)
+              if f.name in values and values[f.name] is not None}
+    obj = cls(**kwargs)
+    check_ranges(obj)
+    return obj
+
+
+def fields_by_name(cls) -> dict:
+    """name -> dataclass field of ``cls`` (Params or Options)."""
+    return {f.name: f for f in fields(cls)}
+
+
+def check_ranges(obj) -> None:
+    """ValueError naming the first numeric field of dataclass ``obj`` outside
+    its ``min``/``max`` metadata (the one range check of Params and Options)."""
+    for f in fields(obj):
+        v = getattr(obj, f.name)
+        lo, hi = f.metadata.get("min"), f.metadata.get("max")
+        if isinstance(v, (int, float)) and not isinstance(v, bool):
+            if lo is not None and v < lo or hi is not None and v > hi:
+                owner = getattr(obj, "OWNER", None) or type(obj).__module__.split(".")[-1] + " parameter"
+                bound = (f"in [{lo}, {hi}]" if lo is not None and hi is not None
+                         else f">= {lo}" if lo is not None else f"<= {hi}")
+                raise ValueError(f"{owner} {f.name}={v} must be {bound}")
 
 
 def t_quantile(z: float, dof: np.ndarray) -> np.ndarray:

@@ -33,14 +33,14 @@ import json
 import os
 import pickle
 import time
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, fields
 
 import numpy as np
 
 from . import methods, regions
 from .buffers import Buffers, Stat
 from .io import temp_beside
-from .method import Method, allocate, consistency_guard, params_from_dict
+from .method import Method, allocate, check_ranges, consistency_guard, param, params_from_dict
 
 CHECKPOINT_VERSION = 1
 TOP_UP = 3
@@ -49,36 +49,67 @@ MAX_EXACT_TASKS = 64  # most renders a pixel-exact fallback plan may take
 
 @dataclass
 class Options:
-    """Loop settings (the CLI and the panel fill these)."""
+    """Loop settings: the one declaration the CLI flags (``--initial-spp``) and
+    the panel's properties are generated from (``operators/cli.py``,
+    ``addon/props.py``).  Each field's metadata (:func:`core.method.param`)
+    holds ``help`` (what it trades), ``min``/``max``, a human ``label``, and
+    ``ui``/``cli`` (False: not shown there).  ``method``, ``frame``,
+    ``params`` and ``features`` are set by the caller, not generated.
+    """
 
-    method: str = "var"
-    spp: float = 16.0
-    initial_spp: int = 4
-    #: sample subsets of the initial pass (variance estimate with K - 1 degrees
-    #: of freedom); 4 by default: 3 dof halves the relative spread of the
-    #: variance estimate compared with the 2-buffer scheme (1 dof) at the cost of
-    #: two more full-frame renders, which take ~10 ms each once synced.
-    subsets: int = 4
-    iterations: int = 4
-    frame: int = 0
-    seed: int = 0
-    min_task_size: int = 8
+    method: str = param("lp", "adaptive method: where samples go and how the image is reconstructed",
+                        label="Method", cli=False, ui=False)
+    spp: float = param(16.0, "mean samples per pixel of the whole run (initial pass included); more "
+                       "is slower and more accurate", 1e-6, None, label="Samples per Pixel",
+                       ui_min=1.0, soft_max=4096.0)
+    initial_spp: int = param(4, "samples per pixel of the first, uniform pass; more gives a better "
+                             "first error estimate and leaves less budget to adapt", 1, None,
+                             label="Initial Samples", soft_max=64)
+    #: 4 by default: 3 degrees of freedom halve the relative spread of the
+    #: variance estimate compared with the 2-buffer scheme (1 dof) at the cost
+    #: of two more full-frame renders, which take ~10 ms each once synced
+    subsets: int = param(4, "sample subsets of the first pass (variance estimate with subsets-1 "
+                         "degrees of freedom); more: steadier estimate, a few more full-frame renders",
+                         1, 64, label="Subsets")
+    iterations: int = param(4, "adaptive iterations after the first pass; more: the sample map "
+                            "follows the error more closely, more per-render overhead", 1, 64,
+                            label="Iterations")
+    frame: int = param(0, "frame to render", label="Frame", cli=False, ui=False)
+    seed: int = param(0, "Cycles seed of the run", 0, None, label="Seed")
+    min_task_size: int = param(8, "smallest region render side in pixels; smaller follows the "
+                               "sample map more closely, more renders", 1, None, label="Min Region Size")
     #: fixed cost of one region render in pixel-samples (see regions.plan)
-    task_cost: float = regions.DEFAULT_TASK_COST
-    #: most samples one pixel may get in one iteration, as a multiple of the
-    #: iteration's mean per pixel (0: no cap).  Our safeguard, not in the papers:
-    #: per-pixel error estimates from a few sample subsets are heavy-tailed
-    #: (fireflies, near-black pixels under relative error), and a map
-    #: proportional to them pours most of an iteration into a few pixels; the
-    #: cap spreads the excess over the other pixels in proportion to the map.
-    max_pixel_share: float = 2.0
-    #: final image: pixels whose reconstruction is more than guard_z standard
-    #: errors from their own sample mean fall back to it (core.method.
-    #: consistency_guard; our safeguard, not in the papers); 0 disables
-    guard_z: float = 3.0
-    max_seconds: float = 0.0  # 0: no time budget
-    params: dict = field(default_factory=dict)
-    features: tuple = ()      # extra passes to read beyond the method's own
+    task_cost: float = param(regions.DEFAULT_TASK_COST, "fixed cost of one region render in "
+                             "pixel-samples; higher merges more regions (fewer renders, samples less "
+                             "adaptive)", 0.0, None, label="Region Cost")
+    #: Our safeguard, not in the papers: per-pixel error estimates from a few
+    #: sample subsets are heavy-tailed (fireflies, near-black pixels under
+    #: relative error), and a map proportional to them pours most of an
+    #: iteration into a few pixels; the cap spreads the excess over the other
+    #: pixels in proportion to the map.
+    max_pixel_share: float = param(2.0, "most samples a pixel may get in one iteration, as a "
+                                   "multiple of the iteration's mean (0: no cap); lower spreads "
+                                   "samples more evenly, higher follows the method's map to its peaks",
+                                   0.0, None, label="Max Pixel Share", soft_max=64.0)
+    #: final image: core.method.consistency_guard (our safeguard, not in the papers)
+    guard_z: float = param(3.0, "final image: a pixel more than this many standard errors from its "
+                           "own sample mean falls back to it (0: off); lower trusts the "
+                           "reconstruction less", 0.0, None, label="Consistency Guard", soft_max=10.0)
+    max_seconds: float = param(0.0, "stop sampling after this many seconds (0: no limit)", 0.0, None,
+                               label="Time Limit", subtype="TIME_ABSOLUTE")
+    params: dict = field(default_factory=dict, metadata={"cli": False, "ui": False})
+    #: extra passes to read beyond the method's own
+    features: tuple = field(default=(), metadata={"cli": False, "ui": False})
+
+    OWNER = "option"  # range errors read "option spp=-1 must be >= 1e-06"
+
+    def __post_init__(self):
+        check_ranges(self)
+
+
+def option_fields(where: str) -> list:
+    """The :class:`Options` fields generated for ``where`` ("cli" or "ui")."""
+    return [f for f in fields(Options) if f.metadata.get(where, True)]
 
 
 @dataclass
@@ -119,10 +150,6 @@ class AdaptiveRun:
         self.options = options
         self.method = methods.get(options.method) if method is None else method
         self.params = params_from_dict(self.method.Params, options.params)
-        if options.spp <= 0:
-            raise ValueError("spp must be positive")
-        if options.initial_spp < 1:
-            raise ValueError("initial spp must be at least 1")
         h, w = executor.size
         self.height, self.width = int(h), int(w)
         self.pixels = self.height * self.width

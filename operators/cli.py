@@ -15,7 +15,8 @@ import time
 from dataclasses import MISSING, fields
 
 from ..core import methods
-from ..core.pipeline import Options
+from ..core.method import fields_by_name
+from ..core.pipeline import Options, option_fields
 
 EXIT_OK, EXIT_FAIL, EXIT_INPUT, EXIT_INTERRUPT = 0, 1, 2, 130
 
@@ -24,8 +25,31 @@ class UserError(Exception):
     """Bad input: printed as one line, exit code 2."""
 
 
-def _flag(method: str, name: str) -> str:
-    return f"--{method}-{name.replace('_', '-')}"
+class _Parser(argparse.ArgumentParser):
+    """argparse with one-line argument errors (no usage dump); exit code 2."""
+
+    def error(self, message):
+        self.exit(EXIT_INPUT, f"{self.prog}: error: {message} (see --help)\n")
+
+
+def add_dataclass_flags(group, flds, prefix: str = "", dest_prefix: str = "") -> None:
+    """One flag per dataclass field (``--PREFIX-NAME``), typed from its default,
+    with its ``help`` metadata and default in the help text.  Every flag
+    defaults to None, so only values given on the command line reach the
+    dataclass (whose own defaults and range checks then apply)."""
+    for f in flds:
+        default = f.default if f.default is not MISSING else None
+        help_ = f.metadata.get("help", "") + (f" (default {default})" if default is not None else "")
+        flag = "--" + (prefix + "-" if prefix else "") + f.name.replace("_", "-")
+        dest = dest_prefix + f.name
+        if isinstance(default, bool):
+            group.add_argument(flag, dest=dest, default=None, action=argparse.BooleanOptionalAction,
+                               help=help_)
+        else:
+            typ = type(default) if default is not None else str
+            kw = {"choices": f.metadata["choices"]} if f.metadata.get("choices") else {}
+            group.add_argument(flag, dest=dest, type=typ, default=None, metavar=typ.__name__.upper(),
+                               help=help_, **kw)
 
 
 def add_method_params(p: argparse.ArgumentParser, names=None) -> None:
@@ -35,24 +59,20 @@ def add_method_params(p: argparse.ArgumentParser, names=None) -> None:
             flds = methods.param_fields(m)
         except ImportError:
             continue
-        if not flds:
-            continue
-        g = p.add_argument_group(f"{m} parameters")
-        for f in flds:
-            default = f.default if f.default is not MISSING else None
-            help_ = f.metadata.get("help", "") + (f" (default {default})" if default is not None else "")
-            if isinstance(default, bool):
-                g.add_argument(_flag(m, f.name), dest=f"{m}__{f.name}", default=None,
-                               action=argparse.BooleanOptionalAction, help=help_)
-            else:
-                typ = type(default) if default is not None else str
-                g.add_argument(_flag(m, f.name), dest=f"{m}__{f.name}", type=typ, default=None,
-                               metavar=typ.__name__.upper(), help=help_)
+        if flds:
+            add_dataclass_flags(p.add_argument_group(f"{m} parameters"), flds, m, f"{m}__")
 
 
 def method_params(args, method: str) -> dict:
     prefix = method + "__"
     return {k[len(prefix):]: v for k, v in vars(args).items() if k.startswith(prefix) and v is not None}
+
+
+def options_from_args(args, **fixed) -> Options:
+    """Options from the generated flags (only those given) plus ``fixed``."""
+    given = {f.name: getattr(args, f.name) for f in option_fields("cli")
+             if getattr(args, f.name, None) is not None}
+    return Options(**given, **fixed)
 
 
 def build_parser(blender_command: bool = False, extra_commands=()) -> argparse.ArgumentParser:
@@ -61,19 +81,15 @@ def build_parser(blender_command: bool = False, extra_commands=()) -> argparse.A
     and ``main(args) -> int`` (the repository's developer tools add ``bench``
     and ``references`` this way; the extension ships without them)."""
     prog = "blender -b scene.blend -c cycles_adaptive" if blender_command else "cycles-adaptive"
-    p = argparse.ArgumentParser(prog=prog, description="Adaptive rendering and denoising for Cycles.")
+    p = _Parser(prog=prog, description="Adaptive rendering and denoising for Cycles.")
     sub = p.add_subparsers(dest="command", required=True)
 
     r = sub.add_parser("render", help="adaptive render of a .blend file")
+    default_method = Options().method
     r.add_argument("blend", nargs="?" if blender_command else None,
                    help="the .blend file" + (" (default: the file Blender opened)" if blender_command else ""))
-    r.add_argument("--method", default="var", choices=list(methods.METHODS))
-    r.add_argument("--spp", type=float, default=16.0, help="mean samples per pixel of the whole run "
-                   "(initial pass included); more is slower and more accurate")
-    r.add_argument("--initial-spp", type=int, default=4, help="samples per pixel of the first pass")
-    r.add_argument("--subsets", type=int, default=4, help="sample subsets of the first pass "
-                   "(variance estimate with subsets-1 degrees of freedom)")
-    r.add_argument("--iterations", type=int, default=4, help="adaptive iterations after the first pass")
+    r.add_argument("--method", default=default_method, choices=list(methods.METHODS),
+                   help=f"{fields_by_name(Options)['method'].metadata['help']} (default {default_method})")
     r.add_argument("--out", help="output EXR (default: next to the .blend, NAME.METHOD.exr)")
     r.add_argument("--reference", help="reference EXR to measure relMSE against")
     r.add_argument("--resolution-percentage", type=int, help="override the scene's resolution %%")
@@ -84,27 +100,14 @@ def build_parser(blender_command: bool = False, extra_commands=()) -> argparse.A
                    help="frame ranges: 'reproject' reuses the previous frame's samples where "
                         "reprojection is valid (Schalk 2018); 'lp' adds LP's temporal regression "
                         "over frames (Moon 2015 Sec. 6, with --method lp)")
-    r.add_argument("--seed", type=int, default=0, help="Cycles seed")
     r.add_argument("--scene", help="scene name (default: the active scene)")
     r.add_argument("--view-layer", help="view layer name (default: the active view layer)")
-    r.add_argument("--max-seconds", type=float, default=0.0, help="stop sampling after this many "
-                   "seconds (0: no limit)")
-    r.add_argument("--min-task-size", type=int, default=8, help="smallest region render side in "
-                   "pixels; smaller follows the sample map more closely, more renders")
-    r.add_argument("--max-pixel-share", type=float, default=2.0, help="most samples a pixel may get "
-                   "in one iteration, as a multiple of the iteration's mean (0: no cap); lower spreads "
-                   "samples more evenly, higher follows the method's map to its peaks")
-    r.add_argument("--guard-z", type=float, default=3.0, help="final image: a pixel more than this "
-                   "many standard errors from its own sample mean falls back to it (0: off); lower "
-                   "trusts the reconstruction less")
-    r.add_argument("--task-cost", type=float, default=None, help="fixed cost of one region render "
-                   "in pixel-samples; higher merges more regions (fewer renders, samples less "
-                   "adaptive)")
     r.add_argument("--overwrite", action="store_true", help="replace existing output files")
     r.add_argument("--resume", action="store_true", help="continue from OUT.exr.checkpoint.npz")
     r.add_argument("--no-preview", action="store_true", help="do not write the PNG preview")
     r.add_argument("--json", action="store_true", help="print one JSON object as the last line")
     r.add_argument("--quiet", action="store_true", help="no progress lines")
+    add_dataclass_flags(r.add_argument_group("loop settings"), option_fields("cli"))
     add_method_params(r, list(methods.METHODS) + list(methods.STAGES))
 
     d = sub.add_parser("denoise", help="reconstruct from a saved passes EXR")
@@ -115,8 +118,7 @@ def build_parser(blender_command: bool = False, extra_commands=()) -> argparse.A
     d.add_argument("--reference")
     d.add_argument("--overwrite", action="store_true")
     d.add_argument("--json", action="store_true")
-    d.add_argument("--guard-z", type=float, default=3.0, help="pixels more than this many standard "
-                   "errors from their own sample mean fall back to it (0: off)")
+    add_dataclass_flags(d, [fields_by_name(Options)["guard_z"]])
     add_method_params(d, methods.DENOISERS)
 
     for cmd in extra_commands:
@@ -198,15 +200,8 @@ def cmd_render(args, blender_command=False) -> int:
             raise UserError("--resolution-percentage must be between 1 and 10000")
         scene.render.resolution_percentage = args.resolution_percentage
     frame = scene.frame_current if args.frame is None else args.frame
-    opts = Options(method=args.method, spp=args.spp, initial_spp=args.initial_spp,
-                   subsets=args.subsets, iterations=args.iterations, frame=frame, seed=args.seed,
-                   max_seconds=args.max_seconds, min_task_size=args.min_task_size,
-                   max_pixel_share=args.max_pixel_share, guard_z=args.guard_z,
-                   params=method_params(args, args.method))
-    if args.task_cost is not None:
-        if args.task_cost < 0:
-            raise UserError("--task-cost must be >= 0")
-        opts.task_cost = args.task_cost
+    opts = options_from_args(args, method=args.method, frame=frame,
+                             params=method_params(args, args.method))
     if args.frames:
         return _render_frames(args, scene, vl, opts)
     out = args.out or default_out(bpy.data.filepath or "untitled.blend", args.method)
@@ -279,7 +274,8 @@ def cmd_denoise(args) -> int:
     ref = load_reference(args.reference, buf.shape)
     params = params_from_dict(method.Params, method_params(args, args.method))
     t1 = time.perf_counter()
-    result = consistency_guard(method.reconstruct(buf, params), buf, args.guard_z)
+    guard_z = Options().guard_z if args.guard_z is None else args.guard_z
+    result = consistency_guard(method.reconstruct(buf, params), buf, guard_z)
     t_rec = time.perf_counter() - t1
     image = np.where(np.isfinite(result.image), result.image, 0.0)
     error = np.where(np.isfinite(result.error), result.error, 0.0)

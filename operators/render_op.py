@@ -11,21 +11,11 @@ import traceback
 
 import bpy
 
-from ..core.pipeline import Options
+from ..addon.props import method_params, options
 from .job import FramesJob, JobError, RenderJob
 from .stepper import Stepper
 
 STEP_SECONDS = 0.05  # work per timer tick before handing control back to the UI
-
-
-def _options(scene) -> Options:
-    from ..addon.props import method_params
-    s = scene.cycles_adaptive
-    return Options(method=s.method, spp=s.spp, initial_spp=s.initial_spp, subsets=s.subsets,
-                   iterations=s.iterations, frame=scene.frame_current, seed=s.seed,
-                   max_seconds=s.max_seconds, max_pixel_share=s.max_pixel_share,
-                   guard_z=s.guard_z,
-                   params=method_params(s, s.method))
 
 
 def _show(job):
@@ -148,18 +138,12 @@ class CYCLESADAPTIVE_OT_render(bpy.types.Operator):
             out = s.output_path if "#" in s.output_path else \
                 s.output_path.replace(".exr", "_####.exr") if s.output_path.endswith(".exr") \
                 else s.output_path + "_####.exr"
-            from ..addon.props import method_params
-            return FramesJob(scene, context.view_layer, _options(scene), out, frames,
+            return FramesJob(scene, context.view_layer, options(scene), out, frames,
                              temporal=s.temporal, overwrite=s.overwrite,
                              reproject_params=method_params(s, "reproject"),
                              temporal_params=method_params(s, "temporal"))
-        return RenderJob(scene, context.view_layer, _options(scene), s.output_path,
+        return RenderJob(scene, context.view_layer, options(scene), s.output_path,
                          overwrite=s.overwrite)
 
 
-def register():
-    bpy.utils.register_class(CYCLESADAPTIVE_OT_render)
-
-
-def unregister():
-    bpy.utils.unregister_class(CYCLESADAPTIVE_OT_render)
+register, unregister = bpy.utils.register_classes_factory((CYCLESADAPTIVE_OT_render,))
