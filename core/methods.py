@@ -1,4 +1,5 @@
-"""Registry of methods: name -> core module (see core/method.py for the contract).
+"""Registry of methods: name -> core module implementing
+:class:`core.method.Method`.
 
 A new method is one module in core/ and one line here.
 """
@@ -6,6 +7,11 @@ from __future__ import annotations
 
 import importlib
 from dataclasses import fields
+
+from .method import Method
+
+#: every member of the Method contract (core/method.py)
+MEMBERS = ("NAME", "PASSES", "Params", "ADAPTIVE", "SAMPLER_USES_RESULT", "reconstruct", "sample_map")
 
 METHODS = {
     "uniform": "uniform",
@@ -22,11 +28,16 @@ STAGES = {"reproject": "reproject", "temporal": "temporal"}
 DENOISERS = ("awr", "lp", "rhf")
 
 
-def get(name: str):
-    """The method module for ``name``; ValueError naming the choices if unknown."""
+def get(name: str) -> Method:
+    """The method module for ``name``; ValueError naming the choices if unknown,
+    TypeError if the module does not declare every member of the contract."""
     if name not in METHODS:
         raise ValueError(f"unknown method {name!r}; choose one of {', '.join(METHODS)}")
-    return importlib.import_module("." + METHODS[name], __package__)
+    mod = importlib.import_module("." + METHODS[name], __package__)
+    missing = [m for m in MEMBERS if not hasattr(mod, m)]
+    if missing:
+        raise TypeError(f"method module {mod.__name__} does not declare {', '.join(missing)}")
+    return mod
 
 
 def param_fields(name: str):

@@ -30,19 +30,15 @@ from __future__ import annotations
 
 import copy
 import json
-import os
-import pickle
 import time
 from dataclasses import asdict, dataclass, field, fields
 
 import numpy as np
 
-from . import methods, regions
+from . import methods, regions, storage
 from .buffers import Buffers, Stat
-from .io import temp_beside
 from .method import Method, allocate, check_ranges, consistency_guard, param, params_from_dict
 
-CHECKPOINT_VERSION = 1
 TOP_UP = 3
 MAX_EXACT_TASKS = 64  # most renders a pixel-exact fallback plan may take
 
@@ -154,7 +150,7 @@ class AdaptiveRun:
         self.height, self.width = int(h), int(w)
         self.pixels = self.height * self.width
         self.budget = int(round(options.spp * self.pixels))
-        adaptive = getattr(self.method, "ADAPTIVE", True)
+        adaptive = self.method.ADAPTIVE
         spp_int = max(1, int(np.floor(options.spp)))
         self.initial_spp = spp_int if not adaptive else min(options.initial_spp, spp_int)
         self.subsets = max(1, min(options.subsets, self.initial_spp))
@@ -208,7 +204,7 @@ class AdaptiveRun:
             if opts.max_seconds and time.perf_counter() - t_start > opts.max_seconds:
                 yield Progress("plan", self.iteration, self._fraction(), "time budget reached")
                 break
-            if not getattr(self.method, "ADAPTIVE", True):
+            if not self.method.ADAPTIVE:
                 budget = self.remaining
             else:
                 left = max(1, opts.iterations - self.iteration)
@@ -217,7 +213,7 @@ class AdaptiveRun:
             # a method whose sampler ignores the reconstruction (AWR: Eq. 8 reads
             # the noisy means) says so, and is not reconstructed per iteration
             result = (self.method.reconstruct(self.buffers, self.params)
-                      if getattr(self.method, "SAMPLER_USES_RESULT", True) else None)
+                      if self.method.SAMPLER_USES_RESULT else None)
             tasks, covered, counts = self._plan_iteration(result, budget)
             self.timing.adapt += time.perf_counter() - t0
             if not tasks:
@@ -340,58 +336,31 @@ class AdaptiveRun:
     def _save_checkpoint(self) -> None:
         if not self.checkpoint_path or self.buffers is None:
             return
-        b = self.buffers
-        arrays = {"n": b.n, "k": b.k, "color_mean": b.color.mean, "color_m2": b.color.m2,
-                  "next_index": self.next_index, "reused": self.reused}
-        for name, st in b.features.items():
-            arrays[f"feat_mean__{name}"] = st.mean
-            arrays[f"feat_m2__{name}"] = st.m2
-        meta = {"version": CHECKPOINT_VERSION, "options": _options_key(self.options),
+        meta = {"options": _options_key(self.options), "method": self.method.NAME,
                 "iteration": self.iteration, "tasks_rendered": self.tasks_rendered,
-                "overshoot": self.overshoot, "timing": asdict(self.timing),
-                "history": self.history}
-        arrays["meta"] = np.frombuffer(json.dumps(meta).encode(), np.uint8)
-        arrays["method_state"] = np.frombuffer(pickle.dumps(self.method_state), np.uint8)
-        tmp = temp_beside(self.checkpoint_path, ".npz")
-        try:
-            np.savez(tmp, **arrays)
-            os.replace(tmp, self.checkpoint_path)
-        finally:
-            if os.path.exists(tmp):
-                os.unlink(tmp)
+                "overshoot": self.overshoot, "timing": asdict(self.timing), "history": self.history}
+        storage.save_checkpoint(self.checkpoint_path, self.buffers,
+                                {"next_index": self.next_index, "reused": self.reused},
+                                meta, self.method_state)
 
     def load_checkpoint(self, path: str) -> None:
-        """Continue from a checkpoint written by a run with the same options."""
-        try:
-            data = np.load(path, allow_pickle=False)
-            meta = json.loads(bytes(data["meta"]).decode())
-        except Exception as exc:
-            raise ValueError(f"{path}: not a readable checkpoint ({exc})") from exc
-        if meta.get("version") != CHECKPOINT_VERSION:
-            raise ValueError(f"{path}: checkpoint version {meta.get('version')} is not "
-                             f"{CHECKPOINT_VERSION}")
-        if meta["options"] != _options_key(self.options):
+        """Continue from a checkpoint written by a run with the same options
+        (``core.storage``: plain arrays and JSON, nothing unpickled)."""
+        b, arrays, meta, state = storage.load_checkpoint(path)
+        if meta.get("options") != _options_key(self.options) or meta.get("method") != self.method.NAME:
             raise ValueError(f"{path}: checkpoint was made with other settings "
-                             f"({meta['options']}); use the same options to resume")
-        if data["n"].shape != (self.height, self.width):
-            raise ValueError(f"{path}: checkpoint is {data['n'].shape}, the render is "
+                             f"({meta.get('method')}, {meta.get('options')}); use the same options to resume")
+        if b.n.shape != (self.height, self.width):
+            raise ValueError(f"{path}: checkpoint is {b.n.shape}, the render is "
                              f"{(self.height, self.width)}")
-        b = Buffers.empty(self.height, self.width, ())
-        b.n, b.k = data["n"].copy(), data["k"].copy()
-        b.color.mean, b.color.m2 = data["color_mean"].copy(), data["color_m2"].copy()
-        for key in data.files:
-            if key.startswith("feat_mean__"):
-                name = key[len("feat_mean__"):]
-                b.features[name] = Stat(data[key].copy(), data["feat_m2__" + name].copy())
         self.buffers = b
-        self.next_index = data["next_index"].copy()
-        if "reused" in data.files:
-            self.reused = data["reused"].copy()
+        self.next_index = arrays["next_index"]
+        self.reused = arrays.get("reused", np.zeros((self.height, self.width)))
         self.iteration = int(meta["iteration"])
         self.tasks_rendered = int(meta["tasks_rendered"])
         self.overshoot = int(meta["overshoot"])
         self.history = list(meta.get("history", []))
-        self.method_state = pickle.loads(bytes(data["method_state"]))
+        self.method_state = state
 
 
 def subset_tasks(width: int, height: int, spp: int, subsets: int, frame: int = 0,

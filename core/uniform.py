@@ -13,8 +13,10 @@ import numpy as np
 from .buffers import Buffers
 from .method import MethodResult, allocate
 
+NAME = "uniform"
 PASSES: tuple = ()
 ADAPTIVE = False
+SAMPLER_USES_RESULT = False
 
 
 @dataclass
@@ -25,10 +27,16 @@ class Params:
 def reconstruct(buf: Buffers, params: Params | None = None) -> MethodResult:
     """The sample mean; error = variance of the mean averaged over RGB
     (0 where no variance estimate exists, k < 2)."""
-    var = buf.variance_of_mean()
+    return denoise(buf.color.mean, buf.variance_of_mean())
+
+
+def denoise(color, color_var, features=None, feature_var=None, n=None, params=None) -> MethodResult:
+    """The sample mean of plain arrays (non-finite values -> 0); error = the
+    variance of the mean averaged over RGB (0 where unknown)."""
+    color = np.asarray(color, np.float64)
+    var = np.broadcast_to(np.asarray(color_var, np.float64), color.shape)
     err = np.where(np.isfinite(var), var, 0.0).mean(axis=-1)
-    img = np.where(np.isfinite(buf.color.mean), buf.color.mean, 0.0)
-    return MethodResult(img, err, {})
+    return MethodResult(np.where(np.isfinite(color), color, 0.0), err, {})
 
 
 def sample_map(buf: Buffers, result: MethodResult, budget: int, params=None, state=None) -> np.ndarray:

@@ -260,7 +260,8 @@ def cmd_denoise(args) -> int:
     from ..core import metrics
     from ..core.method import consistency_guard, params_from_dict
     from ..core.resources import peak_rss_mb
-    from .job import JobError, buffers_from_passes, buffers_to_passes, load_reference, preview_path
+    from ..core.storage import buffers_from_passes, buffers_to_passes
+    from .job import JobError, load_reference
     t0 = time.perf_counter()
     out = os.path.abspath(args.out or os.path.splitext(args.passes)[0] + f".{args.method}.exr")
     imageio.check_writable(out, args.overwrite)
@@ -291,9 +292,7 @@ def cmd_denoise(args) -> int:
         if isinstance(v, (int, float, str, bool)):
             summary[k] = v
     if ref is not None:
-        summary["relmse"] = metrics.relmse(image, ref)
-        summary["smape"] = metrics.smape(image, ref)
-        summary["error_correlation"] = metrics.error_correlation(error, image, ref)
+        summary.update(metrics.summary(image, error, ref))
     _report(summary, args.json)
     return EXIT_OK
 

@@ -23,9 +23,9 @@ import numpy as np
 
 from ..core import io as imageio
 from ..core import metrics
-from ..core.buffers import Buffers, Stat
 from ..core.pipeline import AdaptiveRun, Options
 from ..core.resources import peak_rss_mb
+from ..core.storage import buffers_to_passes
 
 OUTPUT_VERSION = "1"
 
@@ -42,85 +42,15 @@ def preview_path(out: str) -> str:
     return os.path.splitext(out)[0] + ".png"
 
 
-def buffers_to_passes(buf: Buffers, image, error) -> dict:
-    """The output EXR passes of an accumulated buffer and a result."""
-    var = buf.variance_of_mean()
-    alpha = buf.features["alpha"].mean if "alpha" in buf.features else np.ones(buf.shape + (1,))
-    combined = np.concatenate([image, alpha], axis=-1)
-    passes = {
-        "Combined": combined,
-        "Noisy": buf.color.mean,
-        "Variance": np.where(np.isfinite(var), var, 0.0),
-        "M2": buf.color.m2,
-        "Samples": buf.n,
-        "Groups": buf.k,
-        "Error": error,
-    }
-    for name, st in buf.features.items():
-        passes[f"Feat_{name}"] = (st.mean, _letters(st.mean.shape[2]))
-        passes[f"Feat_{name}_M2"] = (st.m2, _letters(st.m2.shape[2]))
-    return passes
-
-
-def _letters(c):
-    return imageio.VECTOR_LETTERS.get(c) if c in (3, 4) else None
-
-
-def buffers_from_passes(passes: dict, path: str) -> Buffers:
-    """Rebuild Buffers from one of our output EXRs, or from a plain Blender
-    multilayer render (Combined + Denoising passes; then no variance is known:
-    one group, k = 1)."""
-    if "Noisy" in passes and "Samples" in passes:
-        shape = passes["Noisy"].shape[:2]
-        for name, arr in passes.items():
-            if arr.shape[:2] != shape:
-                raise JobError(f"{path}: pass {name} is {arr.shape[1]}x{arr.shape[0]}, "
-                               f"Noisy is {shape[1]}x{shape[0]}")
-        need = ("M2", "Groups")
-        miss = [n for n in need if n not in passes]
-        if miss:
-            raise JobError(f"{path}: missing pass {miss[0]} (not a complete cycles-adaptive output)")
-        b = Buffers(passes["Samples"][:, :, 0].astype(np.float64),
-                    passes["Groups"][:, :, 0].astype(np.float64),
-                    Stat(passes["Noisy"][:, :, :3].astype(np.float64),
-                         passes["M2"][:, :, :3].astype(np.float64)))
-        for name in passes:
-            if name.startswith("Feat_") and not name.endswith("_M2"):
-                fname = name[len("Feat_"):]
-                m2 = passes.get(name + "_M2", np.zeros_like(passes[name]))
-                b.features[fname] = Stat(passes[name].astype(np.float64), m2.astype(np.float64))
-        return b
-    if "Combined" not in passes:
-        raise JobError(f"{path}: no Combined or Noisy layer (passes: {', '.join(sorted(passes)) or 'none'})")
-    rgba = passes["Combined"]
-    h, w = rgba.shape[:2]
-    sources = {"albedo": "Denoising Albedo", "normal": "Denoising Normal",
-               "depth": "Denoising Depth", "position": "Position"}
-    b = Buffers(np.ones((h, w)), np.ones((h, w)),
-                Stat(rgba[:, :, :3].astype(np.float64), np.zeros((h, w, 3))))
-    for fname, pname in sources.items():
-        if pname in passes:
-            arr = passes[pname].astype(np.float64)
-            if arr.shape[:2] != (h, w):
-                raise JobError(f"{path}: pass {pname} is {arr.shape[1]}x{arr.shape[0]}, "
-                               f"Combined is {w}x{h}")
-            b.features[fname] = Stat(arr, np.zeros_like(arr))
-    if rgba.shape[2] >= 4:
-        b.features["alpha"] = Stat(rgba[:, :, 3:4].astype(np.float64), np.zeros((h, w, 1)))
-    return b
-
-
 def load_reference(path: str | None, shape) -> np.ndarray | None:
+    """The ``--reference`` image checked against the render's (H, W); None
+    without a path; JobError (one line) for an unreadable or mis-sized file."""
     if not path:
         return None
     try:
-        ref = imageio.read_rgb(path)
+        return imageio.read_reference(path, shape)
     except imageio.ImageFileError as exc:
         raise JobError(str(exc)) from None
-    if ref.shape[:2] != tuple(shape):
-        raise JobError(f"reference {path} is {ref.shape[1]}x{ref.shape[0]}, the render is "
-                       f"{shape[1]}x{shape[0]}")
-    return ref
 
 
 def pad_to_frame(arr: np.ndarray, domain, full_size) -> np.ndarray:
@@ -251,9 +181,7 @@ class RenderJob:
             if isinstance(v, (int, float, str, bool)):
                 summary[f"reproject_{k}"] = v
         if self.reference is not None:
-            summary["relmse"] = metrics.relmse(image, self.reference)
-            summary["smape"] = metrics.smape(image, self.reference)
-            summary["error_correlation"] = metrics.error_correlation(error, image, self.reference)
+            summary.update(metrics.summary(image, error, self.reference))
         self.summary = summary
         return summary
 

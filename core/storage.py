@@ -1,0 +1,209 @@
+"""Buffers on disk: the output EXR's pass format and the render loop's checkpoint.
+
+Two serialisations of the same per-pixel statistics (``core/buffers.py``):
+
+* **passes** (:func:`buffers_to_passes`, :func:`buffers_from_passes`): the
+  passes of our multilayer output EXR, ``Combined`` (result RGB + mean alpha),
+  ``Noisy`` (sample mean), ``Variance`` (of the mean, 0 where unknown), ``M2``,
+  ``Samples``, ``Groups``, ``Error`` and ``Feat_<name>`` / ``Feat_<name>_M2``:
+  everything ``denoise`` needs to re-run any method.  A plain Blender
+  multilayer render (Combined + Denoising passes) reads too, with one sample
+  group (no variance known).
+* **checkpoint** (:func:`save_checkpoint`, :func:`load_checkpoint`): an ``.npz``
+  of plain arrays plus JSON, written atomically after every iteration.  The
+  method's sampler state is stored as JSON with tagged arrays, tuples and numpy
+  random generators; nothing is unpickled when a checkpoint is read, so a
+  tampered file on shared storage cannot run code.
+"""
+from __future__ import annotations
+
+import json
+
+import numpy as np
+
+from .buffers import Buffers, Stat
+from .io import VECTOR_LETTERS, atomic_path
+
+CHECKPOINT_VERSION = 2
+
+#: random generators a checkpoint may restore (numpy's own bit generators)
+_BIT_GENERATORS = ("PCG64", "PCG64DXSM", "Philox", "SFC64", "MT19937")
+
+
+class StorageError(ValueError):
+    """A file that is not what it should be; the message names it and why."""
+
+
+# ======================================================================== passes
+def buffers_to_passes(buf: Buffers, image: np.ndarray, error: np.ndarray) -> dict:
+    """The output EXR passes of an accumulated buffer and a result (see the
+    module notes); values are arrays or ``(array, channel letters)``."""
+    var = buf.variance_of_mean()
+    alpha = buf.features["alpha"].mean if "alpha" in buf.features else np.ones(buf.shape + (1,))
+    passes = {
+        "Combined": np.concatenate([image, alpha], axis=-1),
+        "Noisy": buf.color.mean,
+        "Variance": np.where(np.isfinite(var), var, 0.0),
+        "M2": buf.color.m2,
+        "Samples": buf.n,
+        "Groups": buf.k,
+        "Error": error,
+    }
+    for name, st in buf.features.items():
+        passes[f"Feat_{name}"] = (st.mean, _letters(st.mean.shape[2]))
+        passes[f"Feat_{name}_M2"] = (st.m2, _letters(st.m2.shape[2]))
+    return passes
+
+
+def _letters(c):
+    return VECTOR_LETTERS.get(c) if c in (3, 4) else None
+
+
+#: Blender pass name of each feature a plain render may carry
+_BLENDER_FEATURES = {"albedo": "Denoising Albedo", "normal": "Denoising Normal",
+                     "depth": "Denoising Depth", "position": "Position"}
+
+
+def buffers_from_passes(passes: dict, path: str) -> Buffers:
+    """Buffers from one of our output EXRs' passes, or from a plain Blender
+    multilayer render (Combined + Denoising passes: one group, k = 1, so no
+    variance is known).  StorageError names the missing or mis-sized pass."""
+    if "Noisy" in passes and "Samples" in passes:
+        return _from_output(passes, path)
+    if "Combined" not in passes:
+        raise StorageError(f"{path}: no Combined or Noisy layer "
+                           f"(passes: {', '.join(sorted(passes)) or 'none'})")
+    rgba = passes["Combined"]
+    h, w = rgba.shape[:2]
+    b = Buffers(np.ones((h, w)), np.ones((h, w)),
+                Stat(rgba[:, :, :3].astype(np.float64), np.zeros((h, w, 3))))
+    for fname, pname in _BLENDER_FEATURES.items():
+        if pname in passes:
+            arr = passes[pname].astype(np.float64)
+            if arr.shape[:2] != (h, w):
+                raise StorageError(f"{path}: pass {pname} is {arr.shape[1]}x{arr.shape[0]}, "
+                                   f"Combined is {w}x{h}")
+            b.features[fname] = Stat(arr, np.zeros_like(arr))
+    if rgba.shape[2] >= 4:
+        b.features["alpha"] = Stat(rgba[:, :, 3:4].astype(np.float64), np.zeros((h, w, 1)))
+    return b
+
+
+def _from_output(passes: dict, path: str) -> Buffers:
+    shape = passes["Noisy"].shape[:2]
+    for name, arr in passes.items():
+        if arr.shape[:2] != shape:
+            raise StorageError(f"{path}: pass {name} is {arr.shape[1]}x{arr.shape[0]}, "
+                               f"Noisy is {shape[1]}x{shape[0]}")
+    miss = [n for n in ("M2", "Groups") if n not in passes]
+    if miss:
+        raise StorageError(f"{path}: missing pass {miss[0]} (not a complete cycles-adaptive output)")
+    b = Buffers(passes["Samples"][:, :, 0].astype(np.float64),
+                passes["Groups"][:, :, 0].astype(np.float64),
+                Stat(passes["Noisy"][:, :, :3].astype(np.float64),
+                     passes["M2"][:, :, :3].astype(np.float64)))
+    for name in passes:
+        if name.startswith("Feat_") and not name.endswith("_M2"):
+            m2 = passes.get(name + "_M2", np.zeros_like(passes[name]))
+            b.features[name[len("Feat_"):]] = Stat(passes[name].astype(np.float64), m2.astype(np.float64))
+    return b
+
+
+# ==================================================================== checkpoint
+def save_checkpoint(path: str, buf: Buffers, arrays: dict, meta: dict, state: dict) -> None:
+    """Write ``buf``, extra ``arrays`` (name -> ndarray), JSON ``meta`` and the
+    sampler ``state`` to ``path`` (.npz) atomically."""
+    out = {"n": buf.n, "k": buf.k, "color_mean": buf.color.mean, "color_m2": buf.color.m2}
+    for name, st in buf.features.items():
+        out[f"feat_mean__{name}"] = st.mean
+        out[f"feat_m2__{name}"] = st.m2
+    for name, arr in arrays.items():
+        out[f"array__{name}"] = np.asarray(arr)
+    state_json = _encode(state, out, "state")
+    meta = dict(meta, version=CHECKPOINT_VERSION)
+    out["meta"] = np.frombuffer(json.dumps(meta).encode(), np.uint8)
+    out["state"] = np.frombuffer(json.dumps(state_json).encode(), np.uint8)
+    with atomic_path(path, ".npz") as tmp:
+        np.savez(tmp, **out)
+
+
+def load_checkpoint(path: str):
+    """(Buffers, arrays dict, meta dict, state dict) of a checkpoint written by
+    :func:`save_checkpoint`.  StorageError for anything else: an unreadable
+    file, another version, or a pickled payload (refused, never loaded)."""
+    try:
+        data = np.load(path, allow_pickle=False)
+        files = set(data.files)
+        meta = json.loads(bytes(data["meta"]).decode())
+    except Exception as exc:
+        raise StorageError(f"{path}: not a readable checkpoint ({exc})") from None
+    if "method_state" in files:
+        raise StorageError(f"{path}: the checkpoint holds a pickled method state; refused (a "
+                           "checkpoint is read as plain arrays and JSON only, it never runs code)")
+    if meta.get("version") != CHECKPOINT_VERSION:
+        raise StorageError(f"{path}: checkpoint version {meta.get('version')} is not {CHECKPOINT_VERSION}")
+    try:
+        b = Buffers(data["n"].copy(), data["k"].copy(),
+                    Stat(data["color_mean"].copy(), data["color_m2"].copy()))
+        for key in sorted(files):
+            if key.startswith("feat_mean__"):
+                name = key[len("feat_mean__"):]
+                b.features[name] = Stat(data[key].copy(), data["feat_m2__" + name].copy())
+        arrays = {k[len("array__"):]: data[k].copy() for k in files if k.startswith("array__")}
+        state = _decode(json.loads(bytes(data["state"]).decode()), data)
+    except StorageError:
+        raise
+    except Exception as exc:
+        raise StorageError(f"{path}: damaged checkpoint ({type(exc).__name__}: {exc})") from None
+    return b, arrays, meta, state
+
+
+def _encode(value, arrays: dict, key: str):
+    """JSON form of a sampler state value; arrays go to ``arrays`` under
+    ``key`` and are referenced by name."""
+    if value is None or isinstance(value, (bool, str)):
+        return value
+    if isinstance(value, (int, np.integer)):
+        return int(value)
+    if isinstance(value, (float, np.floating)):
+        return float(value)
+    if isinstance(value, np.bool_):
+        return bool(value)
+    if isinstance(value, np.ndarray):
+        arrays[key] = value
+        return {"__array__": key}
+    if isinstance(value, np.random.Generator):
+        name = type(value.bit_generator).__name__
+        if name not in _BIT_GENERATORS:
+            raise TypeError(f"sampler state {key}: random generator {name} cannot be stored")
+        return {"__generator__": name, "state": _encode(value.bit_generator.state, arrays, key + ".g")}
+    if isinstance(value, tuple):
+        return {"__tuple__": [_encode(v, arrays, f"{key}.{i}") for i, v in enumerate(value)]}
+    if isinstance(value, list):
+        return [_encode(v, arrays, f"{key}.{i}") for i, v in enumerate(value)]
+    if isinstance(value, dict):
+        if not all(isinstance(k, str) for k in value):
+            raise TypeError(f"sampler state {key}: dict keys must be strings")
+        return {"__dict__": {k: _encode(v, arrays, f"{key}.{k}") for k, v in value.items()}}
+    raise TypeError(f"sampler state {key}: a {type(value).__name__} cannot be stored in a checkpoint")
+
+
+def _decode(obj, data):
+    if isinstance(obj, list):
+        return [_decode(v, data) for v in obj]
+    if not isinstance(obj, dict):
+        return obj
+    if "__array__" in obj:
+        return data[obj["__array__"]].copy()
+    if "__tuple__" in obj:
+        return tuple(_decode(v, data) for v in obj["__tuple__"])
+    if "__dict__" in obj:
+        return {k: _decode(v, data) for k, v in obj["__dict__"].items()}
+    if "__generator__" in obj:
+        name = obj["__generator__"]
+        if name not in _BIT_GENERATORS:
+            raise StorageError(f"checkpoint names an unknown random generator {name!r}")
+        bg = getattr(np.random, name)()
+        bg.state = _decode(obj["state"], data)
+        return np.random.Generator(bg)
+    raise StorageError(f"checkpoint state holds an untagged object {sorted(obj)[:3]}")
