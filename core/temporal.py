@@ -1,8 +1,10 @@
 """LP's temporal extension (Moon, Iglesias-Guitian, Yoon, Mitchell 2015, Sec. 6, Eq. 6).
 
-At frame t the static reconstruction (LP, Sec. 4-5) gives the filtered image
-``y(t)``.  Every pixel i keeps a linear model in time, ``y_i(t) ~ beta_i^T z_i(t)``
-with ``z = (1, t)``, updated by lambda-weighted recursive least squares (Eq. 6):
+What and why: in an animation the static reconstruction (LP, Sec. 4-5) of
+frame t, ``y(t)``, still carries noise that the neighbouring frames could
+average out.  Every pixel i therefore keeps a linear model in time,
+``y_i(t) ~ beta_i^T z_i(t)`` with ``z = (1, t)``, updated by lambda-weighted
+recursive least squares (Eq. 6):
 
     G_i(t)    = P_i(t-1) z_i(t) / (lambda + z_i(t)^T P_i(t-1) z_i(t))
     P_i(t)    = lambda^-1 (P_i(t-1) - G_i(t) z_i(t)^T P_i(t-1))
@@ -19,6 +21,13 @@ product.  Initialisation as for the static models (Sec. 7):
 ``beta(0) = (y_i, 0)``, ``P(0) = I / delta``.
 
 Call :func:`step` once per frame, in order, with the previous frame's state.
+It runs, per chunk of pixels: :func:`_frame_inputs` (y, its error, W, the
+background mask), :func:`previous_models` and :func:`search_origin` (where a
+pixel's model may come from, following the backward coordinates),
+:func:`best_previous` (the search above, with the position gate),
+:func:`carry_models` (Eq. 6 via :func:`rls_update`, the residual reset
+:func:`residual_reset`, the error estimate), :func:`new_models` (the
+initialisation) and :func:`_finish` (the output assembly).
 
 Choices where the paper is silent (each tested)
 -----------------------------------------------
@@ -38,8 +47,8 @@ Choices where the paper is silent (each tested)
   unrelated surface (a camera cut, a disocclusion) would then smear for
   ~1 / (1 - lambda) = 50 frames, so (a) candidates must lie within
   ``position_tolerance * depth_i`` of ``W_i`` (0 turns the gate off; it needs
-  the depth pass) and be background exactly when pixel i is (Position
-  (0, 0, 0), as in ``core.reproject``); (b) the chosen model is dropped when
+  the depth pass) and be background exactly when pixel i is
+  (``buffers.is_background``); (b) the chosen model is dropped when
   its prediction misses by more than ``reset_sigma`` standard deviations:
   ``mean_c e_c^2 > reset_sigma^2 ((sigma_i^2 + (0.01 y)^2) (1 + z^T P z /
   lambda) + v)``, ``v`` the model's own noise variance (below), so a fresh
@@ -57,25 +66,27 @@ Choices where the paper is silent (each tested)
   squared bias is estimated from the a-priori residuals, whose expectation is
   ``b^2 + sigma_t^2 + v`` (``v = z^T C(t-1) z``): ``b^2 = max(0, B)`` with
   ``B`` the lambda-weighted mean over the model's life of
-  ``mean_c(e_c^2) - sigma_t^2 - v`` (one frame's residual alone is too noisy:
-  clamping it at 0 would add ~0.4 sigma^2 to every estimate); it enters as
-  ``(1 - g)^2 b^2``.  Averaged over RGB.
-  Caveat: LP's own bias repeats from frame to frame in a still scene, so the
-  variance part is optimistic there.
+  ``mean_c(e_c^2) - sigma_t^2 - v`` (one frame's residual alone is too noisy
+  to clamp at 0); it enters as ``(1 - g)^2 b^2``.  Averaged over RGB.
+  The variance part is optimistic in a still scene, where LP's own bias
+  repeats from frame to frame.
 * **Missing data.**  A pixel with a non-finite ``y`` keeps its carried model
   unchanged and outputs its prediction (error ``v`` + the frame's largest
   error); a pixel with an unknown (non-finite) position outputs its ``y``
   unfiltered and keeps no model (nothing could find it again); with no model
   and no ``y`` the output is 0 with the frame's largest error.  The
   Position pass itself is required (``ValueError`` otherwise).
+
+Measurements and design notes: docs/notes/temporal.md
 """
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import NamedTuple
 
 import numpy as np
 
-from .buffers import Buffers
+from .buffers import FAR_DEPTH, Buffers, is_background
 from .lp_solve import ring_layout
 from .method import MethodResult, param, params_from_dict
 
@@ -83,6 +94,9 @@ PASSES = ("position", "depth")
 
 #: relative floor of the residual gate's noise level (1 % of the value)
 REL_FLOOR = 0.01
+
+#: counters of ``TemporalResult.info`` (fractions of the frame's pixels)
+COUNTS = ("carried", "new", "reset_position", "reset_residual")
 
 
 @dataclass
@@ -109,10 +123,6 @@ class Params:
         "feeds the raw pixel means (faster, noisier)")
     chunk: int = param(
         65536, "pixels processed per vectorised batch (memory ~ 0.5 KB per pixel in flight)", 256, 4194304)
-
-    @classmethod
-    def from_dict(cls, values):
-        return params_from_dict(cls, values)
 
 
 @dataclass
@@ -233,8 +243,44 @@ def closed_form(ys, lam: float, delta: float):
 
 
 # ----------------------------------------------------------------------------- inputs
-def _frame_inputs(buf: Buffers, params: Params, static, lp_params):
-    """y (H, W, 3), sigma2 (H, W), position (H, W, 3), depth (H, W) or None, background."""
+class FrameInputs(NamedTuple):
+    """One frame's data for Eq. 6, cleaned: arrays (H, W, ...) or flattened (H*W, ...).
+
+    y : (..., 3) static estimate y(t) (0 where not ``y_ok``); s2 : (...) its
+    squared error sigma^2 (non-finite or negative -> ``top``); y_ok : bool, y
+    finite and the pixel sampled; position : (..., 3) W(t) (0 where not
+    ``pos_ok``); pos_ok : bool, W finite; depth : (...) finite surface depth
+    (NaN elsewhere) or None without the depth pass; background : bool, no
+    surface hit (and W known); top : float, the frame's largest finite error.
+    """
+
+    y: np.ndarray
+    s2: np.ndarray
+    y_ok: np.ndarray
+    position: np.ndarray
+    pos_ok: np.ndarray
+    depth: np.ndarray | None
+    background: np.ndarray
+    top: float
+
+    def flat(self) -> "FrameInputs":
+        """The same arrays as (H*W, ...) views."""
+        return FrameInputs(self.y.reshape(-1, 3), self.s2.reshape(-1), self.y_ok.reshape(-1),
+                           self.position.reshape(-1, 3), self.pos_ok.reshape(-1),
+                           self.depth.reshape(-1) if self.depth is not None else None,
+                           self.background.reshape(-1), self.top)
+
+    def rows(self, idx) -> "FrameInputs":
+        """Rows ``idx`` of the flattened inputs (one chunk)."""
+        return FrameInputs(self.y[idx], self.s2[idx], self.y_ok[idx], self.position[idx],
+                           self.pos_ok[idx], self.depth[idx] if self.depth is not None else None,
+                           self.background[idx], self.top)
+
+
+def _frame_inputs(buf: Buffers, params: Params, static, lp_params) -> FrameInputs:
+    """The frame's y(t) and sigma^2(t) (Sec. 6: the static reconstruction's output
+    and error, or the raw means and their variance with ``spatial = False``), world
+    positions W(t) and the background mask, as :class:`FrameInputs` (H, W, ...)."""
     if "position" not in buf.features:
         raise ValueError("LP temporal needs the Position pass (world positions to carry models)")
     if static is not None:
@@ -257,15 +303,301 @@ def _frame_inputs(buf: Buffers, params: Params, static, lp_params):
     s2 = np.where(fin, s2, top)
     pos = buf.features["position"].mean
     pos_ok = np.all(np.isfinite(pos), axis=-1)
-    depth = None
-    if "depth" in buf.features:
-        depth = buf.features["depth"].mean[..., 0]
-    bg = np.all(pos == 0.0, axis=-1)
+    depth = buf.features["depth"].mean[..., 0] if "depth" in buf.features else None
+    bg = is_background(pos, depth)
     if depth is not None:
-        bg &= (depth == 0.0) | (depth >= 1e9)
-        depth = np.where(np.isfinite(depth) & (depth > 0) & (depth < 1e9), depth, np.nan)
-    return np.where(y_ok[..., None], y, 0.0), s2, y_ok, np.where(pos_ok[..., None], pos, 0.0), \
-        pos_ok, depth, bg & pos_ok, top
+        depth = np.where(np.isfinite(depth) & (depth > 0) & (depth < FAR_DEPTH), depth, np.nan)
+    return FrameInputs(np.where(y_ok[..., None], y, 0.0), s2, y_ok, np.where(pos_ok[..., None], pos, 0.0),
+                       pos_ok, depth, bg & pos_ok, top)
+
+
+# ----------------------------------------------------------------------------- carrying models
+class PreviousModels(NamedTuple):
+    """Frame t-1's models flattened to (Hp*Wp, ...) rows, for the search and Eq. 6.
+
+    shape : (Hp, Wp); beta (N, 3, 2), P (N, 2, 2), C (N, 2, 2), age (N,),
+    bias_num, bias_den (N,): the state's arrays; dt : int, frames since then;
+    packed : (N, 11) float32 ``[W (3) | beta_c0 (3) | beta_c1 (3) | age | class]``
+    (class 0: no model, 1: surface, 2: background), the search's one gather;
+    dy, dx : (K,) window offsets ring by ring (:func:`lp_solve.ring_layout`).
+    """
+
+    shape: tuple
+    beta: np.ndarray
+    P: np.ndarray
+    C: np.ndarray
+    age: np.ndarray
+    bias_num: np.ndarray
+    bias_den: np.ndarray
+    dt: int
+    packed: np.ndarray
+    dy: np.ndarray
+    dx: np.ndarray
+
+
+def previous_models(state: TemporalState | None, frame: int, shape, has_center: bool,
+                    search_radius: int):
+    """The previous frame's models if they can be carried into frame ``frame`` of ``shape`` (H, W).
+
+    They can when the state is older than the frame and either the resolution is
+    unchanged or a centre map says where each pixel was in the previous frame
+    (without one a resized frame starts fresh).  Returns (:class:`PreviousModels`
+    or None, resized: bool, True when that refusal was for the resolution).
+    """
+    usable = state is not None and int(state.frame) < frame
+    resized = state is not None and not has_center and state.shape != tuple(shape)
+    if not usable or resized:
+        return None, resized
+    hp, wp = state.shape
+    beta = state.beta.reshape(-1, 3, 2)
+    age = state.age.reshape(-1)
+    packed = np.empty((hp * wp, 11), np.float32)   # search only; updates use float64
+    packed[:, 0:3] = state.position.reshape(-1, 3)
+    packed[:, 3:6] = beta[:, :, 0]
+    packed[:, 6:9] = beta[:, :, 1]
+    packed[:, 9] = age
+    packed[:, 10] = np.where(age > 0, np.where(state.background.reshape(-1), 2.0, 1.0), 0.0)
+    dy, dx, _, _ = ring_layout(int(search_radius))
+    return PreviousModels((hp, wp), beta, state.P.reshape(-1, 2, 2), state.C.reshape(-1, 2, 2), age,
+                          state.bias_num.reshape(-1), state.bias_den.reshape(-1),
+                          frame - int(state.frame), packed, dy, dx), False
+
+
+def _center_rows(center, shape):
+    """``center`` (H, W, 2) as (H*W, 2) float64 rows, or None; ValueError when its size is not the frame's."""
+    if center is None:
+        return None
+    cen = np.asarray(center, np.float64).reshape(-1, 2)
+    if cen.shape[0] != shape[0] * shape[1]:
+        raise ValueError(f"center has shape {np.shape(center)}, the frame is {tuple(shape)}")
+    return cen
+
+
+def search_origin(idx, w: int, cen, same_shape: bool):
+    """Centre (row, col) in frame t-1 of the search window of pixels ``idx`` (flat, frame width ``w``).
+
+    The floor of the backward coordinates ``cen`` (m, 2) where they are finite;
+    elsewhere, and with ``cen`` None, the pixel's own position when the
+    resolution is unchanged, else nowhere (-10^9: no candidate).  Returns br, bc (m,) int64.
+    """
+    if cen is None:
+        return idx // w, idx % w
+    c = cen[idx]
+    okc = np.all(np.isfinite(c), axis=1)
+    br = np.where(okc, np.floor(np.where(okc, c[:, 0], 0.0)), -10 ** 9).astype(np.int64)
+    bc = np.where(okc, np.floor(np.where(okc, c[:, 1], 0.0)), -10 ** 9).astype(np.int64)
+    if same_shape:
+        br = np.where(okc, br, idx // w)
+        bc = np.where(okc, bc, idx % w)
+    return br, bc
+
+
+def gate_radius2(depth, tolerance: float, m: int):
+    """Squared radius (m,) of the position gate: ``(tolerance * depth_i)^2``;
+    0 (exact match only) where the depth is unknown; inf without a depth pass
+    or with ``tolerance`` 0 (no gate, the literal paper)."""
+    if depth is not None and tolerance > 0:
+        tol = tolerance * depth
+        tol = np.where(np.isfinite(tol), tol, 0.0)           # background / unknown: exact
+    else:
+        tol = np.full(m, np.inf)
+    return tol * tol
+
+
+def best_previous(prev: PreviousModels, br, bc, inp: FrameInputs, tol2):
+    """The pixel o of frame t-1 whose model each pixel i of the chunk takes (Sec. 6).
+
+    Among the window around (br, bc) (m,), candidates with a model of pixel i's
+    class (surface / background) and ``|W_o - W_i|^2 <= tol2``, the one that
+    minimises ``|W_o(t-1) - W_i(t)|^2 |y_i(t) - beta_o(t-1)^T z_i(t)|^2``, z in
+    the candidate's own time; ties go to the smaller prediction error, then the
+    earlier (nearer) ring.  Search in float32 (``prev.packed``).
+    Returns best (m,) int64 flat index into frame t-1 (-1: none) and
+    gated (m,) bool: a candidate of the right class existed but none passed the gate.
+    """
+    hp, wp = prev.shape
+    yi, yoki, wi = inp.y, inp.y_ok, inp.position
+    m = yi.shape[0]
+    best = np.full(m, -1, np.int64)
+    best_score = np.full(m, np.inf)
+    best_e2 = np.full(m, np.inf)
+    any_gate = np.zeros(m, bool)
+    want = np.where(inp.background, 2.0, 1.0)
+    for oy, ox in zip(prev.dy, prev.dx):
+        r = br + oy
+        cc = bc + ox
+        inside = (r >= 0) & (r < hp) & (cc >= 0) & (cc < wp)
+        j = np.where(inside, r * wp + cc, 0)
+        g = prev.packed[j]                                # one gather per offset
+        cand = inside & (g[:, 10] == want) & inp.pos_ok
+        d2 = (g[:, 0] - wi[:, 0]) ** 2 + (g[:, 1] - wi[:, 1]) ** 2 + (g[:, 2] - wi[:, 2]) ** 2
+        gate = cand & (d2 <= tol2)
+        any_gate |= cand
+        t_loc = g[:, 9] + prev.dt
+        e0 = yi[:, 0] - g[:, 3] - g[:, 6] * t_loc
+        e1 = yi[:, 1] - g[:, 4] - g[:, 7] * t_loc
+        e2_ = yi[:, 2] - g[:, 5] - g[:, 8] * t_loc
+        e2 = np.where(yoki, e0 * e0 + e1 * e1 + e2_ * e2_, 1.0)
+        with np.errstate(over="ignore", invalid="ignore"):
+            score = d2 * e2
+        score = np.where(np.isnan(score), np.inf, score)
+        better = gate & ((score < best_score) | ((score == best_score) & (e2 < best_e2)))
+        best = np.where(better, j, best)
+        best_score = np.where(better, score, best_score)
+        best_e2 = np.where(better, e2, best_e2)
+    return best, any_gate & (best < 0)
+
+
+# ----------------------------------------------------------------------------- reset tests, bias
+def residual_reset(z, P_o, pred, e, s2, v, has_y, lam: float, reset_sigma: float):
+    """Carried models to drop (m,) bool: the prediction misses by more than ``reset_sigma`` deviations,
+    ``mean_c e_c^2 > reset_sigma^2 ((sigma^2 + (REL_FLOOR pred)^2) (1 + z^T P z / lambda) + v)``
+    (module docstring, gate (b)); never where there is no y, nor with ``reset_sigma`` 0.
+
+    z (m, 2), P_o (m, 2, 2) the carried P(t-1), pred and e = y - pred (m, 3), s2, v (m,).
+    """
+    if not reset_sigma > 0:
+        return np.zeros(z.shape[0], bool)
+    s = np.einsum("ni,nij,nj->n", z, P_o, z)
+    floor = (REL_FLOOR ** 2) * (pred * pred).mean(axis=1) + 1e-300
+    lim = reset_sigma ** 2 * ((s2 + floor) * (1.0 + s / lam) + v)
+    with np.errstate(invalid="ignore", over="ignore"):
+        return has_y & ~((e * e).mean(axis=1) <= lim)
+
+
+def bias_estimate(bias_num, bias_den, e, s2, v, has_y, lam: float):
+    """Squared bias of the carried prediction (module docstring, error estimate).
+
+    Updates the lambda-weighted sums of ``mean_c e_c^2 - sigma^2 - v`` and of
+    the weights (unchanged without a y); returns them and ``b^2 = max(0, num / den)``, all (m,).
+    """
+    excess = (e * e).mean(axis=1) - s2 - v
+    bn = np.where(has_y, lam * bias_num + np.where(np.isfinite(excess), excess, 0.0), bias_num)
+    bd = np.where(has_y, lam * bias_den + 1.0, bias_den)
+    return bn, bd, np.maximum(bn / np.maximum(bd, 1e-300), 0.0)
+
+
+class CarriedModels(NamedTuple):
+    """Models of the carried pixels after frame t (n rows): beta (n, 3, 2), P, C
+    (n, 2, 2), age (n,) int64, bias_num, bias_den (n,), image (n, 3) =
+    beta(t)^T z(t), error (n,), drop (n,) bool (reset by the residual gate)."""
+
+    beta: np.ndarray
+    P: np.ndarray
+    C: np.ndarray
+    age: np.ndarray
+    bias_num: np.ndarray
+    bias_den: np.ndarray
+    image: np.ndarray
+    error: np.ndarray
+    drop: np.ndarray
+
+
+def carry_models(prev: PreviousModels, j, y, s2, has_y, lam: float, reset_sigma: float,
+                 top: float) -> CarriedModels:
+    """Eq. 6 for the models of frame t-1 rows ``j`` (n,) carried to pixels with y (n, 3), s2, has_y (n,).
+
+    z = (1, age + dt) in the model's own time.  Where there is no y the model
+    is kept unchanged and outputs its prediction, error ``v + b^2 + top``;
+    elsewhere the error is ``z^T C(t) z + (1 - g)^2 b^2`` (module docstring).
+    """
+    t_loc = (prev.age[j] + prev.dt).astype(np.float64)
+    z = np.stack([np.ones(j.size), t_loc], 1)
+    b_o, P_o, C_o = prev.beta[j], prev.P[j], prev.C[j]
+    b1, P1, C1, pred, g, v = rls_update(b_o, P_o, C_o, z, y, s2, lam)
+    e = y - pred
+    drop = residual_reset(z, P_o, pred, e, s2, v, has_y, lam, reset_sigma)
+    # pixels without a usable y: keep the carried model, output its prediction
+    b1 = np.where(has_y[:, None, None], b1, b_o)
+    P1 = np.where(has_y[:, None, None], P1, P_o)
+    C1 = np.where(has_y[:, None, None], C1, C_o)
+    y_hat = np.einsum("nci,ni->nc", b1, z)
+    var_out = np.einsum("ni,nij,nj->n", z, C1, z)
+    bn, bd, bias2 = bias_estimate(prev.bias_num[j], prev.bias_den[j], e, s2, v, has_y, lam)
+    e_out = np.where(has_y, var_out + (1.0 - g) ** 2 * bias2, v + bias2 + top)
+    return CarriedModels(b1, P1, C1, t_loc.astype(np.int64), bn, bd, y_hat, e_out, drop)
+
+
+# ----------------------------------------------------------------------------- output assembly
+class _Rows(NamedTuple):
+    """One chunk's share (m rows) of the new state and of the output."""
+
+    beta: np.ndarray
+    P: np.ndarray
+    C: np.ndarray
+    age: np.ndarray
+    bias_num: np.ndarray
+    bias_den: np.ndarray
+    image: np.ndarray
+    error: np.ndarray
+    source: np.ndarray
+
+
+def _step_chunk(idx, inp: FrameInputs, prev: PreviousModels | None, cen, w: int, same_shape: bool,
+                params: Params, lam: float, delta: float, counts: dict) -> _Rows:
+    """Frame t for the pixels ``idx`` (m,) of the flattened inputs: find each
+    pixel's previous model, update it (Eq. 6) or start a new one; adds to ``counts``."""
+    m = idx.size
+    best = np.full(m, -1, np.int64)
+    if prev is not None:
+        br, bc = search_origin(idx, w, cen, same_shape)
+        best, gated = best_previous(prev, br, bc, inp, gate_radius2(inp.depth, params.position_tolerance, m))
+        counts["reset_position"] += int(np.count_nonzero(gated))
+    carried = best >= 0
+    rows = _Rows(np.zeros((m, 3, 2)), np.zeros((m, 2, 2)), np.zeros((m, 2, 2)), np.zeros(m, np.int64),
+                 np.zeros(m), np.zeros(m), np.zeros((m, 3)), np.zeros(m), None)
+    ci = np.flatnonzero(carried)
+    if ci.size:
+        cm = carry_models(prev, best[ci], inp.y[ci], inp.s2[ci], inp.y_ok[ci], lam, params.reset_sigma,
+                          inp.top)
+        counts["reset_residual"] += int(np.count_nonzero(cm.drop))
+        keep = ~cm.drop
+        sel = ci[keep]
+        for name in ("bias_num", "bias_den", "beta", "P", "C", "age", "image", "error"):
+            getattr(rows, name)[sel] = getattr(cm, name)[keep]
+        carried[ci[cm.drop]] = False
+        best[ci[cm.drop]] = -1
+    # new models (paper initialisation)
+    ni = np.flatnonzero(~carried & inp.y_ok & inp.pos_ok)
+    if ni.size:
+        b0, P0, C0 = new_models(inp.y[ni], inp.s2[ni], delta, lam)
+        rows.beta[ni], rows.P[ni], rows.C[ni] = b0, P0, C0
+        rows.age[ni] = 1
+        rows.image[ni] = inp.y[ni]
+        rows.error[ni] = inp.s2[ni]
+    nothing = ~carried & ~(inp.y_ok & inp.pos_ok)
+    rows.image[nothing] = np.where(inp.y_ok[nothing, None], inp.y[nothing], 0.0)
+    rows.error[nothing] = np.where(inp.y_ok[nothing], inp.s2[nothing], inp.top)
+    counts["carried"] += int(np.count_nonzero(carried))
+    counts["new"] += int(ni.size)
+    return rows._replace(source=np.where(carried, best, -1))
+
+
+def _store(rows: _Rows, idx, state: TemporalState, image, error, source):
+    """Write one chunk's rows into the (H, W, ...) state and outputs."""
+    for name in ("beta", "P", "C", "age", "bias_num", "bias_den"):
+        a = getattr(state, name)
+        a.reshape((-1,) + a.shape[2:])[idx] = getattr(rows, name)
+    image.reshape(-1, 3)[idx] = rows.image
+    error.reshape(-1)[idx] = rows.error
+    source.reshape(-1)[idx] = rows.source
+
+
+def _finish(image, error, state: TemporalState):
+    """Never emit NaN/Inf: non-finite image values become 0, errors the largest
+    finite error (then >= 0), and a model with any non-finite entry is dropped
+    (age 0, zeros) in ``state``.  Returns image, error."""
+    h, w = state.shape
+    image = np.where(np.isfinite(image), image, 0.0)
+    fin = np.isfinite(error)
+    error = np.maximum(np.where(fin, error, float(error[fin].max()) if fin.any() else 0.0), 0.0)
+    for name in ("beta", "P", "C", "bias_num", "bias_den"):
+        a = getattr(state, name)
+        bad = ~np.all(np.isfinite(a.reshape(h, w, -1)), axis=-1)
+        if bad.any():
+            state.age[bad] = 0
+            a[bad] = 0.0
+    return image, error
 
 
 # ----------------------------------------------------------------------------- step
@@ -300,199 +632,36 @@ def step(state: TemporalState | None, buf: Buffers, params: Params | dict | None
     TemporalResult
         ``image`` (H, W, 3) = beta(t)^T z(t), ``error`` (H, W) (module
         docstring), the new ``state``, ``source`` and ``info`` (``carried``,
-        ``new``, ``reset_position``, ``reset_residual`` fractions, ``frame``).
-        All finite.
+        ``new``, ``reset_position``, ``reset_residual`` fractions, ``frame``,
+        ``resized``).  All finite.
     """
     params = _params(params)
     h, w = buf.shape
-    lam = float(params.lam)
-    delta = float(params.delta)
     if frame is None:
         frame = 1 if state is None else int(state.frame) + 1
     frame = int(frame)
-    y, s2, y_ok, pos, pos_ok, depth, bg, top = _frame_inputs(buf, params, static, lp_params)
-    npx = h * w
+    inp = _frame_inputs(buf, params, static, lp_params)
     new_state = TemporalState(frame, np.zeros((h, w, 3, 2)), np.zeros((h, w, 2, 2)),
                               np.zeros((h, w, 2, 2)), np.zeros((h, w), np.int64),
-                              pos.copy(), bg.copy())
+                              inp.position.copy(), inp.background.copy())
     image = np.zeros((h, w, 3))
     error = np.zeros((h, w))
     source = np.full((h, w), -1, np.int64)
-    info = {"frame": frame, "carried": 0.0, "new": 0.0, "reset_position": 0.0,
-            "reset_residual": 0.0, "resized": False}
+    info = {"frame": frame, **{k: 0.0 for k in COUNTS}, "resized": False}
+    npx = h * w
     if npx == 0:
         return TemporalResult(image, error, new_state, source, info)
-
-    usable_prev = state is not None and int(state.frame) < frame
-    if state is not None and center is None and state.shape != (h, w):
-        usable_prev = False
-        info["resized"] = True
-    if usable_prev:
-        hp, wp = state.shape
-        p_beta = state.beta.reshape(-1, 3, 2)
-        p_P = state.P.reshape(-1, 2, 2)
-        p_C = state.C.reshape(-1, 2, 2)
-        p_age = state.age.reshape(-1)
-        p_pos = state.position.reshape(-1, 3)
-        p_bg = state.background.reshape(-1)
-        p_bn = state.bias_num.reshape(-1)
-        p_bd = state.bias_den.reshape(-1)
-        dt = frame - int(state.frame)
-        # packed previous models: [position (3) | beta_c0 (3) | beta_c1 (3) | age | class]
-        # class 0: no model, 1: surface, 2: background
-        packed = np.empty((hp * wp, 11), np.float32)   # search only; updates use float64
-        packed[:, 0:3] = p_pos
-        packed[:, 3:6] = p_beta[:, :, 0]
-        packed[:, 6:9] = p_beta[:, :, 1]
-        packed[:, 9] = p_age
-        packed[:, 10] = np.where(p_age > 0, np.where(p_bg, 2.0, 1.0), 0.0)
-        dy, dx, _, _ = ring_layout(int(params.search_radius))
-    flat_y = y.reshape(-1, 3)
-    flat_s2 = s2.reshape(-1)
-    flat_yok = y_ok.reshape(-1)
-    flat_pos = pos.reshape(-1, 3)
-    flat_pok = pos_ok.reshape(-1)
-    flat_bg = bg.reshape(-1)
-    flat_depth = depth.reshape(-1) if depth is not None else None
-    cen = None
-    if center is not None:
-        cen = np.asarray(center, np.float64).reshape(-1, 2)
-        if cen.shape[0] != npx:
-            raise ValueError(f"center has shape {np.shape(center)}, the frame is {(h, w)}")
-    counts = {"carried": 0, "new": 0, "reset_position": 0, "reset_residual": 0}
+    prev, info["resized"] = previous_models(state, frame, (h, w), center is not None, params.search_radius)
+    cen = _center_rows(center, (h, w))
+    same_shape = prev is not None and prev.shape == (h, w)
+    flat = inp.flat()
+    counts = dict.fromkeys(COUNTS, 0)
     chunk = max(int(params.chunk), 1)
     for s0 in range(0, npx, chunk):
         idx = np.arange(s0, min(npx, s0 + chunk))
-        m = idx.size
-        yi, s2i, yoki = flat_y[idx], flat_s2[idx], flat_yok[idx]
-        wi, poki, bgi = flat_pos[idx], flat_pok[idx], flat_bg[idx]
-        best = np.full(m, -1, np.int64)
-        if usable_prev:
-            if cen is not None:
-                c = cen[idx]
-                okc = np.all(np.isfinite(c), axis=1)
-                br = np.where(okc, np.floor(np.where(okc, c[:, 0], 0.0)), -10 ** 9).astype(np.int64)
-                bc = np.where(okc, np.floor(np.where(okc, c[:, 1], 0.0)), -10 ** 9).astype(np.int64)
-                if state.shape == (h, w):
-                    br = np.where(okc, br, idx // w)
-                    bc = np.where(okc, bc, idx % w)
-            else:
-                br, bc = idx // w, idx % w
-            if flat_depth is not None and params.position_tolerance > 0:
-                tol = params.position_tolerance * flat_depth[idx]
-                tol = np.where(np.isfinite(tol), tol, 0.0)           # background / unknown: exact
-            else:
-                tol = np.full(m, np.inf)
-            tol2 = tol * tol
-            best_score = np.full(m, np.inf)
-            best_e2 = np.full(m, np.inf)
-            any_gate = np.zeros(m, bool)
-            want = np.where(bgi, 2.0, 1.0)
-            for oy, ox in zip(dy, dx):
-                r = br + oy
-                cc = bc + ox
-                inside = (r >= 0) & (r < hp) & (cc >= 0) & (cc < wp)
-                j = np.where(inside, r * wp + cc, 0)
-                g = packed[j]                                # one gather per offset
-                cand = inside & (g[:, 10] == want) & poki
-                d2 = (g[:, 0] - wi[:, 0]) ** 2 + (g[:, 1] - wi[:, 1]) ** 2 + (g[:, 2] - wi[:, 2]) ** 2
-                gate = cand & (d2 <= tol2)
-                any_gate |= cand
-                t_loc = g[:, 9] + dt
-                e0 = yi[:, 0] - g[:, 3] - g[:, 6] * t_loc
-                e1 = yi[:, 1] - g[:, 4] - g[:, 7] * t_loc
-                e2_ = yi[:, 2] - g[:, 5] - g[:, 8] * t_loc
-                e2 = np.where(yoki, e0 * e0 + e1 * e1 + e2_ * e2_, 1.0)
-                with np.errstate(over="ignore", invalid="ignore"):
-                    score = d2 * e2
-                score = np.where(np.isnan(score), np.inf, score)
-                better = gate & ((score < best_score) | ((score == best_score) & (e2 < best_e2)))
-                best = np.where(better, j, best)
-                best_score = np.where(better, score, best_score)
-                best_e2 = np.where(better, e2, best_e2)
-            counts["reset_position"] += int(np.count_nonzero(any_gate & (best < 0)))
-        carried = best >= 0
-        # ---- carried models: Eq. 6
-        beta = np.zeros((m, 3, 2))
-        P = np.zeros((m, 2, 2))
-        C = np.zeros((m, 2, 2))
-        age = np.zeros(m, np.int64)
-        bnum = np.zeros(m)
-        bden = np.zeros(m)
-        out = np.zeros((m, 3))
-        err = np.zeros(m)
-        ci = np.flatnonzero(carried)
-        if ci.size:
-            j = best[ci]
-            t_loc = (p_age[j] + dt).astype(np.float64)
-            z = np.stack([np.ones(ci.size), t_loc], 1)
-            b_o, P_o, C_o = p_beta[j], p_P[j], p_C[j]
-            upd = yoki[ci]
-            b1, P1, C1, pred, g, v = rls_update(b_o, P_o, C_o, z, yi[ci], s2i[ci], lam)
-            e = yi[ci] - pred
-            # residual gate
-            if params.reset_sigma > 0:
-                s = np.einsum("ni,nij,nj->n", z, P_o, z)
-                floor = (REL_FLOOR ** 2) * (pred * pred).mean(axis=1) + 1e-300
-                lim = params.reset_sigma ** 2 * ((s2i[ci] + floor) * (1.0 + s / lam) + v)
-                with np.errstate(invalid="ignore", over="ignore"):
-                    drop = upd & ~((e * e).mean(axis=1) <= lim)
-            else:
-                drop = np.zeros(ci.size, bool)
-            counts["reset_residual"] += int(np.count_nonzero(drop))
-            keep = ~drop
-            # pixels without a usable y: keep the carried model, output its prediction
-            b1 = np.where(upd[:, None, None], b1, b_o)
-            P1 = np.where(upd[:, None, None], P1, P_o)
-            C1 = np.where(upd[:, None, None], C1, C_o)
-            zc = z
-            y_hat = np.einsum("nci,ni->nc", b1, zc)
-            var_out = np.einsum("ni,nij,nj->n", zc, C1, zc)
-            excess = (e * e).mean(axis=1) - s2i[ci] - v
-            bn = np.where(upd, lam * p_bn[j] + np.where(np.isfinite(excess), excess, 0.0), p_bn[j])
-            bd = np.where(upd, lam * p_bd[j] + 1.0, p_bd[j])
-            bias2 = np.maximum(bn / np.maximum(bd, 1e-300), 0.0)
-            e_out = np.where(upd, var_out + (1.0 - g) ** 2 * bias2, v + bias2 + top)
-            sel = ci[keep]
-            bnum[sel], bden[sel] = bn[keep], bd[keep]
-            beta[sel], P[sel], C[sel] = b1[keep], P1[keep], C1[keep]
-            age[sel] = t_loc[keep].astype(np.int64)
-            out[sel] = y_hat[keep]
-            err[sel] = e_out[keep]
-            carried[ci[drop]] = False
-            best[ci[drop]] = -1
-        # ---- new models (paper initialisation)
-        ni = np.flatnonzero(~carried & yoki & poki)
-        if ni.size:
-            b0, P0, C0 = new_models(yi[ni], s2i[ni], delta, lam)
-            beta[ni], P[ni], C[ni] = b0, P0, C0
-            age[ni] = 1
-            out[ni] = yi[ni]
-            err[ni] = s2i[ni]
-        nothing = ~carried & ~(yoki & poki)
-        out[nothing] = np.where(yoki[nothing, None], yi[nothing], 0.0)
-        err[nothing] = np.where(yoki[nothing], s2i[nothing], top)
-        counts["carried"] += int(np.count_nonzero(carried))
-        counts["new"] += int(ni.size)
-        new_state.beta.reshape(-1, 3, 2)[idx] = beta
-        new_state.P.reshape(-1, 2, 2)[idx] = P
-        new_state.C.reshape(-1, 2, 2)[idx] = C
-        new_state.age.reshape(-1)[idx] = age
-        new_state.bias_num.reshape(-1)[idx] = bnum
-        new_state.bias_den.reshape(-1)[idx] = bden
-        image.reshape(-1, 3)[idx] = out
-        error.reshape(-1)[idx] = err
-        source.reshape(-1)[idx] = np.where(carried, best, -1)
-    # never emit NaN/Inf
-    image = np.where(np.isfinite(image), image, 0.0)
-    fin = np.isfinite(error)
-    error = np.maximum(np.where(fin, error, float(error[fin].max()) if fin.any() else 0.0), 0.0)
-    for name in ("beta", "P", "C", "bias_num", "bias_den"):
-        a = getattr(new_state, name)
-        bad = ~np.all(np.isfinite(a.reshape(h, w, -1)), axis=-1)
-        if bad.any():
-            new_state.age[bad] = 0
-            a[bad] = 0.0
-    for k_, v_ in counts.items():
-        info[k_] = v_ / npx
+        rows = _step_chunk(idx, flat.rows(idx), prev, cen, w, same_shape, params,
+                           float(params.lam), float(params.delta), counts)
+        _store(rows, idx, new_state, image, error, source)
+    image, error = _finish(image, error, new_state)
+    info.update({k: v / npx for k, v in counts.items()})
     return TemporalResult(image, error, new_state, source, info)

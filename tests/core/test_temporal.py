@@ -259,3 +259,178 @@ def test_hostile_input_finite():
     # same frame again (state not older than the frame): fresh, not a crash
     r5 = tp.step(s1.state, buf, tp.Params(spatial=False), frame=1)
     assert r5.info["carried"] == 0.0
+
+
+# ----------------------------------------------------------------------------- the separated steps
+def test_rls_update_recursion_equals_batch_weighted_least_squares():
+    """new_models (t = 1) then rls_update for t = 2..T give the closed form over
+    the frames (Eq. 6 is exact), and P(T) = (lam^T delta I + sum lam^(T-j) z z^T)^-1."""
+    rng = np.random.default_rng(10)
+    n, t_n = 9, 15
+    for lam, delta in ((0.98, 1e-3), (1.0, 1e-2), (0.7, 0.5)):
+        ys = rng.normal(1.0, 0.3, (t_n, n, 3)) + 0.05 * np.arange(t_n)[:, None, None]
+        s2 = rng.random((t_n, n))
+        beta, P, C = tp.new_models(ys[0], s2[0], delta, lam)
+        for t in range(2, t_n + 1):
+            z = np.stack([np.ones(n), np.full(n, float(t))], 1)
+            beta, P, C, pred, g, v = tp.rls_update(beta, P, C, z, ys[t - 1], s2[t - 1], lam)
+            np.testing.assert_allclose(beta, tp.closed_form(ys[:t], lam, delta), rtol=1e-7, atol=1e-9)
+            # the gain of the output: beta(t)^T z = (1 - g) pred + g y
+            np.testing.assert_allclose(np.einsum("nci,ni->nc", beta, z),
+                                       (1 - g)[:, None] * pred + g[:, None] * ys[t - 1], rtol=1e-9)
+        z = np.stack([np.ones(t_n), np.arange(1, t_n + 1.0)], 1)
+        wts = lam ** (t_n - np.arange(1, t_n + 1.0))
+        p_ref = np.linalg.inv(lam ** t_n * delta * np.eye(2) + (z * wts[:, None]).T @ z)
+        np.testing.assert_allclose(P, np.broadcast_to(p_ref, P.shape), rtol=1e-7)
+
+
+def test_new_models_is_the_first_rls_step_from_the_paper_initialisation():
+    """beta stays (y, 0) (the residual of the first update is 0), P(1) is
+    (lam delta I + z z^T)^-1 with z = (1, 1), and C = sigma^2 e0 e0^T."""
+    rng = np.random.default_rng(11)
+    y, s2 = rng.random((6, 3)), rng.random(6)
+    lam, delta = 0.98, 1e-3
+    beta, P, C = tp.new_models(y, s2, delta, lam)
+    np.testing.assert_array_equal(beta[..., 0], y)
+    np.testing.assert_array_equal(beta[..., 1], 0.0)
+    z = np.ones(2)
+    np.testing.assert_allclose(P, np.broadcast_to(np.linalg.inv(lam * delta * np.eye(2) + np.outer(z, z)),
+                                                  P.shape), rtol=1e-9)
+    b_rls, P_rls, _, _, _, _ = tp.rls_update(np.stack([np.stack([y[:, c], np.zeros(6)], -1)
+                                                       for c in range(3)], 1),
+                                             np.broadcast_to(np.eye(2) / delta, (6, 2, 2)),
+                                             np.zeros((6, 2, 2)), np.ones((6, 2)), y, s2, lam)
+    np.testing.assert_allclose(b_rls, beta, atol=1e-12)
+    np.testing.assert_allclose(P_rls, P, rtol=1e-12)
+    np.testing.assert_array_equal(C[:, 0, 0], s2)
+    assert not C.reshape(6, -1)[:, 1:].any()
+
+
+def test_residual_reset_threshold():
+    """A model is dropped exactly when mean_c e^2 exceeds
+    reset_sigma^2 ((sigma^2 + (0.01 pred)^2) (1 + z^T P z / lam) + v), never without a y or with 0."""
+    rng = np.random.default_rng(12)
+    n, lam, k = 8, 0.98, 3.0
+    z = np.stack([np.ones(n), rng.integers(1, 30, n).astype(float)], 1)
+    a = rng.random((n, 2, 2))
+    P = a @ np.swapaxes(a, 1, 2) + 0.1 * np.eye(2)
+    pred, s2, v = rng.random((n, 3)), 0.01 * rng.random(n), 0.01 * rng.random(n)
+    lim = k ** 2 * ((s2 + tp.REL_FLOOR ** 2 * (pred ** 2).mean(1)) * (1 + np.einsum("ni,nij,nj->n", z, P, z) / lam)
+                    + v)
+    has_y = np.ones(n, bool)
+    for scale, dropped in ((0.999, False), (1.001, True)):
+        e = np.repeat(np.sqrt(scale * lim)[:, None], 3, 1)
+        np.testing.assert_array_equal(tp.residual_reset(z, P, pred, e, s2, v, has_y, lam, k), dropped)
+        assert not tp.residual_reset(z, P, pred, e, s2, v, ~has_y, lam, k).any()
+        assert not tp.residual_reset(z, P, pred, e, s2, v, has_y, lam, 0.0).any()
+    e = np.full((n, 3), np.nan)                                 # a NaN residual is a miss
+    assert tp.residual_reset(z, P, pred, e, s2, v, has_y, lam, k).all()
+
+
+def test_reset_model_equals_a_fresh_one():
+    """Where the residual gate drops the carried model, the new state is the
+    paper initialisation: bit for bit what a first frame (no state) gives there."""
+    rng = np.random.default_rng(13)
+    pos = plane_positions()
+    truth = smooth_truth(pos)
+    state = None
+    params = tp.Params(spatial=False)
+    for f in range(1, 6):
+        state = tp.step(state, frame_buffers(truth, rng, pos, noise=0.1), params, frame=f).state
+    dark = truth.copy()
+    dark[:, :W // 2] *= 0.2
+    buf = frame_buffers(dark, rng, pos, noise=0.1)
+    res = tp.step(state, buf, params, frame=6)
+    fresh = tp.step(None, buf, params, frame=6)
+    reset = res.source == -1
+    assert reset[:, :W // 2].all() and not reset[:, W // 2:].any()
+    for name in ("beta", "P", "C", "age", "bias_num", "bias_den"):
+        np.testing.assert_array_equal(getattr(res.state, name)[reset], getattr(fresh.state, name)[reset])
+    np.testing.assert_array_equal(res.image[reset], fresh.image[reset])
+    np.testing.assert_array_equal(res.error[reset], fresh.error[reset])
+    beta0, P0, C0 = tp.new_models(buf.color.mean[reset], fresh.error[reset], params.delta, params.lam)
+    np.testing.assert_array_equal(res.state.beta[reset], beta0)
+    np.testing.assert_array_equal(res.state.P[reset], P0)
+    np.testing.assert_array_equal(res.state.C[reset], C0)
+
+
+def _state_of(position, beta, age, background=None):
+    h, w = age.shape
+    return tp.TemporalState(1, beta, np.broadcast_to(np.eye(2), (h, w, 2, 2)).copy(),
+                            np.zeros((h, w, 2, 2)), age, position,
+                            np.zeros((h, w), bool) if background is None else background)
+
+
+def test_best_previous_minimises_the_paper_product_within_the_gates():
+    """Sec. 6: the chosen o minimises |W_o - W_i|^2 |y_i - beta_o^T z|^2 among
+    candidates of the pixel's class inside the position gate; with none inside
+    the gate the pixel is flagged (a fresh model), with none of its class it is not."""
+    hp, wp = 3, 3
+    position = np.zeros((hp, wp, 3))
+    beta = np.zeros((hp, wp, 3, 2))
+    age = np.zeros((hp, wp), np.int64)                           # 0: no model
+    age[[1, 0, 1, 2], [1, 1, 0, 2]] = 1
+    background = np.zeros((hp, wp), bool)
+    # pixel i: W = 0 (a surface point at the origin, not background: its class comes from the mask), y = 1
+    position[1, 1] = (0.001, 0, 0); beta[1, 1, :, 0] = 0.0       # nearest, prediction misses by 1
+    position[0, 1] = (0.01, 0, 0); beta[0, 1, :, 0] = 0.95       # product 1e-4 * 3 * 0.0025: the best
+    position[1, 0] = (0.0, 0, 0); beta[1, 0, :, 0] = 1.0         # product 0 but background
+    background[1, 0] = True
+    position[2, 2] = (0.5, 0, 0); beta[2, 2, :, 0] = 1.0         # product 0 but outside the gate
+    prev, resized = tp.previous_models(_state_of(position, beta, age, background), 2, (1, 1), False, 1)
+    assert prev is None and resized                              # another resolution, no centre map
+    prev, resized = tp.previous_models(_state_of(position, beta, age, background), 2, (1, 1), True, 1)
+    assert not resized and prev.dt == 1
+    inp = tp.FrameInputs(np.ones((3, 3)), np.zeros(3), np.ones(3, bool), np.zeros((3, 3)),
+                         np.ones(3, bool), None, np.array([False, True, False]), 0.0)
+    br, bc = np.array([1, 1, 1]), np.array([1, 1, 1])
+    tol2 = np.array([0.1 ** 2, 0.1 ** 2, 1e-6 ** 2])
+    # beta_c1 = 0, so the prediction at z = (1, age + dt) is beta_c0
+    best, gated = tp.best_previous(prev, br, bc, inp, tol2)
+    np.testing.assert_array_equal(best, [0 * wp + 1, 1 * wp + 0, -1])
+    np.testing.assert_array_equal(gated, [False, False, True])
+    # without a background model in reach the background pixel finds nothing, and is not flagged
+    prev_nobg = tp.previous_models(_state_of(position, beta, age), 2, (3, 3), False, 1)[0]
+    best, gated = tp.best_previous(prev_nobg, br, bc, inp, tol2)
+    assert best[1] == -1 and not gated[1]
+    # the window is the window: from a centre out of reach nothing is found
+    best, gated = tp.best_previous(prev, br + 5, bc, inp, np.full(3, np.inf))
+    assert (best == -1).all() and not gated.any()
+
+
+def test_search_origin_follows_the_backward_coordinates():
+    w = 5
+    idx = np.arange(10)
+    br, bc = tp.search_origin(idx, w, None, True)
+    np.testing.assert_array_equal(br, idx // w)
+    np.testing.assert_array_equal(bc, idx % w)
+    cen = np.tile([[2.7, -0.2]], (10, 1))
+    cen[3] = np.nan
+    cen[4] = (1.0, np.inf)
+    for same, fallback in ((True, (idx // w, idx % w)), (False, (np.full(10, -10 ** 9),) * 2)):
+        br, bc = tp.search_origin(idx, w, cen, same)
+        ok = np.ones(10, bool)
+        ok[[3, 4]] = False
+        assert (br[ok] == 2).all() and (bc[ok] == -1).all()    # the floor, even below 0
+        np.testing.assert_array_equal(br[~ok], fallback[0][~ok])
+        np.testing.assert_array_equal(bc[~ok], fallback[1][~ok])
+
+
+def test_bias_estimate_is_the_weighted_mean_excess():
+    """B = num / den is the lambda-weighted mean of mean_c e^2 - sigma^2 - v over
+    the updates; b^2 = max(0, B); a pixel without y keeps its sums."""
+    rng = np.random.default_rng(14)
+    lam, n, t_n = 0.9, 5, 7
+    num, den = np.zeros(n), np.zeros(n)
+    excesses = []
+    for _ in range(t_n):
+        e, s2, v = rng.normal(0, 1, (n, 3)), rng.random(n), rng.random(n)
+        excesses.append((e * e).mean(1) - s2 - v)
+        num, den, b2 = tp.bias_estimate(num, den, e, s2, v, np.ones(n, bool), lam)
+    wts = lam ** np.arange(t_n - 1, -1, -1.0)
+    mean = (wts[:, None] * np.array(excesses)).sum(0) / wts.sum()
+    np.testing.assert_allclose(num / den, mean, rtol=1e-12)
+    np.testing.assert_allclose(b2, np.maximum(mean, 0.0), rtol=1e-12)
+    n2, d2, _ = tp.bias_estimate(num, den, e, s2, v, np.zeros(n, bool), lam)
+    np.testing.assert_array_equal(n2, num)
+    np.testing.assert_array_equal(d2, den)
