@@ -1,23 +1,36 @@
 """LP: adaptive rendering with linear predictions (Moon, Iglesias-Guitian, Yoon, Mitchell 2015).
 
-A first-order model ``f(x_i) ~ f(x_c) + grad f(x_c)^T (x_i - x_c)`` (Eq. 1) in
-the features x = (pixel position, depth, normal, albedo) (Table 1) is fitted
-by least squares at a sparse set of *centre* pixels c, inside a prediction
-window ``k(r) = (2r+1)^2`` whose size is chosen per centre by a recursive
-estimate of the prediction error, and it predicts every pixel of that window.
+What: a first-order model ``f(x_i) ~ f(x_c) + grad f(x_c)^T (x_i - x_c)``
+(Eq. 1) in the features x = (pixel position, depth, normal, albedo) (Table 1)
+is fitted by least squares at a sparse set of *centre* pixels c, inside a
+prediction window ``k(r) = (2r+1)^2`` whose size is chosen per centre by a
+recursive estimate of the prediction error, and it predicts every pixel of
+that window.  Why: one model predicts up to (2R+1)^2 pixels, so the expensive
+fit and error estimate run at a few percent of the pixels (paper: 4.7-18.9 %),
+and the window is only as large as the linear model stays accurate; the same
+error estimates drive adaptive sampling.
 
-Pipeline (one function per step, all vectorised over centre pixels):
+Equations (Moon et al. 2015) and where they are computed:
 
-1. Features, normalised and prefiltered per filtering window by a truncated SVD
-   (Sec. 7, after Moon et al. 2014): :func:`feature_transform`.
-2. Recursive least squares over the rings of the 19x19 filtering window
-   (Sec. 4.1, Eq. 3), computed as cumulative normal equations per ring with
-   batched solves: :func:`core.lp_solve.ring_fits`.
-3. Recursive prediction error (Sec. 4.2, Eq. 4-5; initialisation Eq. 7) and the
-   optimal window per centre and colour channel: :func:`fit_centres`.
-4. Centre placement with granularities g, g/2, g/4, ... (Sec. 5.1),
-   overlapping predictions averaged: :func:`fit`.
-5. Adaptive sampling (Sec. 5.2): :func:`sample_map`.
+* Eq. 1, the prediction ``f_hat(x_i) = beta_c^T z_i`` with
+  ``z_i = (1, x_i - x_c)`` in TSVD coordinates: :meth:`core.lp_solve.Design.predict`;
+  overlapping predictions are averaged by :class:`_Accumulator` (Sec. 5.1).
+* Eq. 2, the optimal window ``k_opt = argmin_k xi_c(k)`` with Eq. 4's
+  estimate substituted: :func:`_optimal_models`.
+* Eq. 3, recursive least squares from ``beta(0) = (y_c, 0, ..., 0)``,
+  ``P(0) = I / delta`` (Sec. 7), solved at the ring boundaries as the
+  equivalent regularised normal equations: :func:`core.lp_solve.ring_fits`.
+* Eq. 4-5, the recursive prediction error (the model of k(r-1) tested on the
+  8r pixels of ring r), and Eq. 7, its leave-one-out initialisation on k(1):
+  :func:`core.lp_solve.ring_fits`; Eq. 4's normalisation: :func:`_estimated_errors`.
+* Sec. 5.1, centre placement with granularities g, g/2, g/4, ...:
+  :func:`_place_centres`.
+* Sec. 5.2, adaptive sampling ``Delta n_i ~ xi n_i^(-4/(d+4)) / (f_hat^2 +
+  epsilon)``: :func:`sample_map`.
+* Sec. 7, the features normalised and prefiltered per filtering window by a
+  truncated SVD (after Moon et al. 2014): :func:`feature_transform`.
+
+(Eq. 6, the temporal extension of Sec. 6, is ``core/temporal.py``.)
 
 Choices where the paper leaves room (each also stated where it is made):
 
@@ -49,18 +62,26 @@ Choices where the paper leaves room (each also stated where it is made):
 * **Window normalisation at borders.**  Eq. 4 divides by ``(2r+1)^2``; windows
   cut by the image border or holding missing pixels divide by the number of
   pixels actually in ``k(r)`` (the mean the error is defined as).
+* **Ties.**  ``argmin`` keeps the first minimum, i.e. the smaller window, so
+  zero-variance input keeps k(0) and is returned unchanged.
 * **Granularity sequence.**  g, g // 2, g // 4, ..., 1 (integer halving; the
   last pass tests every pixel, which guarantees full coverage); g = 0 means the
   filtering window width 2R+1 (the paper's example).
+* **Sampling exponent.**  ``n_i^(-4/(d_c+4))`` uses the TSVD rank d_c of each
+  covering model's centre (Sec. 5.2 cites Moon et al. 2014 for the rate); the
+  reported model dimension (``MethodResult.dimension``) is the mean rank.
 * **Missing data.**  Pixels with no samples, or non-finite colour or features
-  (or values beyond 1e150, whose squares overflow), enter no fit and no error sum; they are still predicted (from their features,
-  or by the intercept when their features are non-finite).  A non-finite or
-  negative variance counts as unknown.
+  (or values beyond 1e150, whose squares overflow), enter no fit and no error
+  sum; they are still predicted (from their features, or by the intercept when
+  their features are non-finite).  A non-finite or negative variance counts as
+  unknown.
 * **One subset (k < 2, variance +inf).**  ``xi(k(0))`` is +inf, so the centre
   never keeps its unfiltered value while a larger window has a finite error,
   and no variance is subtracted from its test terms (the literal Eq. 5/7).
   Where no finite estimate exists at all, the reported error is the largest
   finite error of the image (0 if there is none).
+
+Measurements and design notes: docs/notes/lp.md
 """
 from __future__ import annotations
 
@@ -70,10 +91,13 @@ import numpy as np
 
 from .buffers import Buffers
 from .lp_solve import Design, ring_fits, ring_layout
-from .method import MethodResult, allocate, param, params_from_dict
+from .method import MethodResult, allocate, gain_exponent, param, params_from_dict
 
+NAME = "lp"
 PASSES = ("normal", "albedo", "depth")
 ADAPTIVE = True
+#: sample_map reuses the reconstruction's fit (``MethodResult.fit``)
+SAMPLER_USES_RESULT = True
 
 #: feature groups in the order of the design matrix columns after position
 _GROUPS = ("depth", "normal", "albedo")
@@ -115,10 +139,6 @@ class Params:
         0, "centre pixels processed per vectorised batch (0 = auto: pixels / 1024, "
         "between 32 and 256, so the workspace stays under ~80 bytes per pixel); "
         "larger has less Python overhead but uses ~80 KB more memory per centre", 0, 65536)
-
-    @classmethod
-    def from_dict(cls, values):
-        return params_from_dict(cls, values)
 
 
 @dataclass
@@ -320,7 +340,11 @@ class _Frame:
 def _box_sum(plane: np.ndarray, r: int, out: np.ndarray | None = None) -> np.ndarray:
     """Sum over the (2r+1)^2 window around every pixel of a plane zero-padded
     by r (summed-area table, written into ``out`` when given); >= 0 for
-    non-negative input."""
+    non-negative input.  Feeds the TSVD threshold's ``||E||_F`` (Sec. 7).
+
+    Not :func:`core.filters.box_sum`: that one never subtracts partial sums
+    and so rounds differently, which could move a TSVD rank at a threshold.
+    """
     hp, wp = plane.shape
     sat = np.zeros((hp + 1, wp + 1))
     body = sat[1:, 1:]
@@ -410,9 +434,51 @@ def fit_centres(frame: _Frame, centre_flat: np.ndarray, params: Params, keep_mod
     if ws is None:
         ws = _Workspace(n_c, k, d, radius)
     index = centre_flat[:, None] + (dy * frame.wp + dx)[None, :]
+    x, transform, rank, order = _window_features(frame, centre_flat, index, dy, dx, params, ws)
+    y, w, fvalid, s, beta0, xi0 = _window_observations(frame, index[order], ws)
+
+    xi = np.empty((radius + 1, n_c, 3))
+    beta = np.zeros((n_c, 3, d + 1))
+    pred = np.empty((n_c, 3, k))
+    pinv = np.zeros((n_c, 3, d + 1, d + 1)) if keep_models else None
+    rank_s = rank[order]
+    cuts = np.concatenate([[0], np.flatnonzero(np.diff(rank_s)) + 1, [n_c]])
+    for lo, hi in zip(cuts[:-1], cuts[1:]):
+        p = int(rank_s[lo]) + 1
+        sel = order[lo:hi]                                             # the group, in input order
+        grp = slice(lo, hi)                                            # ... in sorted order
+        design = Design(transform[sel][:, :, :p - 1], x[grp], fvalid[grp])
+        fits = ring_fits(design, y[grp], w[grp], s[grp], beta0[grp], xi0[grp], radius, params.delta,
+                         keep_gram=keep_models, work=ws.ring(hi - lo, p))
+        xg = _estimated_errors(fits, xi0[grp])
+        xi[:, sel] = xg
+        bg, gram = _optimal_models(fits, xg)
+        beta[sel, :, :p] = bg
+        pred[sel] = design.predict(bg)                                 # Eq. 1
+        if keep_models:
+            pinv[sel, :, :p, :p] = np.linalg.inv(gram)
+    r_opt = np.argmin(xi, axis=0)                                      # (N, 3)
+    out = {"index": index, "ring": ring, "pred": pred, "rank": rank, "r_opt": r_opt, "xi": xi,
+           "xi_opt": xi[r_opt, np.arange(n_c)[:, None], np.arange(3)[None, :]], "beta": beta}
+    if keep_models:
+        out["P"] = pinv
+        out["transform"] = transform
+    return out
+
+
+def _window_features(frame: _Frame, centre_flat, index, dy, dx, params: Params, ws: _Workspace):
+    """The features of every centre's filtering window and their TSVD
+    prefilter (Sec. 7, :func:`feature_transform`).
+
+    Returns ``x`` (N, D, K) the offsets ``x_i - x_c`` with the centres sorted
+    by model size (a view of the workspace), ``transform`` (N, D, D) and
+    ``rank`` (N,) in input order, and ``order`` (N,) the stable sort by rank.
+    The gathers write straight into the workspace (``mode="clip"``: the
+    indices are in range; ``mode="raise"`` would gather into a copy first).
+    """
+    n_c, k = index.shape
+    d = frame.dim
     nf = d - 2
-    # features and their TSVD (Sec. 7); mode="clip" (the indices are in range)
-    # writes straight into the workspace, mode="raise" would gather into a copy first
     feats = ws.view(ws.b, n_c, d, k)
     feats[:, 0] = dy
     feats[:, 1] = dx
@@ -423,63 +489,70 @@ def fit_centres(frame: _Frame, centre_flat: np.ndarray, params: Params, keep_mod
         del raw
     fvalid = np.take(frame.planes[frame.c_f], index, mode="clip")
     transform, rank, _, _ = feature_transform(
-        feats, fvalid, frame.centre[:, centre_flat].T, frame.groups, radius,
+        feats, fvalid, frame.centre[:, centre_flat].T, frame.groups, int(params.radius),
         params.svd_floor, params.svd_noise_factor, params.min_rank,
         work=ws.view(ws.a, n_c, d, k))
     del fvalid
     feats -= feats[:, :, :1].copy()                                    # x_i - x_c
-    # centres sorted by model size p = d_c + 1, so every group below is a slice
+    # centres sorted by model size p = d_c + 1, so every group of fit_centres is a slice
     order = np.argsort(rank, kind="stable")
     x = np.take(feats, order, axis=0, out=ws.view(ws.a, n_c, d, k), mode="clip")
-    del feats
+    return x, transform, rank, order
+
+
+def _window_observations(frame: _Frame, index, ws: _Workspace):
+    """The window pixels' observations and the initial conditions of the
+    recursions (Sec. 7), for centres in the order of ``index`` (N, K).
+
+    Returns ``y`` (N, 3, K) pixel means, ``w`` (N, K) fit weights, ``fvalid``
+    (N, K), ``s`` (N, 3, K) the amount Eq. 5/7 subtract from each squared test
+    residual (the known variances of the mean, 0 where unknown, or 0 for the
+    literal equations), ``beta0`` (N, 3) the intercept ``y_c`` of ``beta(0)``
+    and ``xi0`` (N, 3) ``xi_acc(k(0))``, the variance of the centre's mean
+    (+inf where unknown or the centre is missing).  All but the last two are
+    views of the workspace.
+    """
+    n_c, k = index.shape
     g = ws.view(ws.b, 8, n_c, k)                                       # var0 | y | w | fvalid
-    np.take(frame.planes[frame.c_v:], index[order], axis=1, out=g, mode="clip")
+    np.take(frame.planes[frame.c_v:], index, axis=1, out=g, mode="clip")
     var0, y = g[0:3], np.swapaxes(g[3:6], 0, 1)                        # (3, N, K), (N, 3, K)
     w, fvalid = g[6], g[7]
     centre_ok = w[:, 0] > 0
     beta0 = np.where(centre_ok[:, None], y[:, :, 0], 0.0)
     xi0 = np.where(centre_ok[:, None], var0[:, :, 0].T, np.inf)
-    # s of Eq. 5/7, in place: the known variances (0 where unknown), or 0 for the literal equations
+    # s of Eq. 5/7, in place
     if frame.subtract:
         np.copyto(var0, 0.0, where=~np.isfinite(var0))
     else:
         var0[...] = 0.0
-    s = np.swapaxes(var0, 0, 1)
+    return y, w, fvalid, np.swapaxes(var0, 0, 1), beta0, xi0
 
-    xi = np.empty((radius + 1, n_c, 3))
-    beta = np.zeros((n_c, 3, d + 1))
-    pred = np.empty((n_c, 3, k))
-    pinv = np.zeros((n_c, 3, d + 1, d + 1)) if keep_models else None
+
+def _estimated_errors(fits, xi0: np.ndarray) -> np.ndarray:
+    """Eq. 4: ``xi_c(k(r)) = xi_acc(k(r)) / |k(r)|`` (R+1, N, 3), |k(r)| the
+    number of usable pixels in k(r) (the paper's ``(2r+1)^2`` away from
+    borders and holes); entry 0 is ``xi0`` itself, and 0/0 (no usable pixel)
+    is +inf so such a window is never chosen."""
+    with np.errstate(divide="ignore", invalid="ignore"):
+        xg = fits.xi_acc / fits.count[..., None]
+    xg[0] = xi0
+    return np.where(np.isnan(xg), np.inf, xg)
+
+
+def _optimal_models(fits, xi_est: np.ndarray):
+    """Eq. 2 with Eq. 4's estimate substituted: per centre and channel the
+    model ``beta(k(r_opt))``, ``r_opt = argmin_r xi_c(k(r))`` (the first
+    minimum: ties go to the smaller window).
+
+    Returns ``beta`` (N, 3, p) and, when ``fits`` kept them, the Gram matrices
+    ``delta I + X^T X`` of the chosen windows (N, 3, p, p) (else None).
+    """
+    r_g = np.argmin(xi_est, axis=0)                                    # (N, 3)
+    idx_n = np.arange(r_g.shape[0])[:, None]
     idx_c = np.arange(3)[None, :]
-    rank_s = rank[order]
-    cuts = np.concatenate([[0], np.flatnonzero(np.diff(rank_s)) + 1, [n_c]])
-    for lo, hi in zip(cuts[:-1], cuts[1:]):
-        p = int(rank_s[lo]) + 1
-        sel = order[lo:hi]                                             # the group, in input order
-        grp = slice(lo, hi)                                            # ... in sorted order
-        design = Design(transform[sel][:, :, :p - 1], x[grp], fvalid[grp])
-        x0 = xi0[grp]
-        fits = ring_fits(design, y[grp], w[grp], s[grp], beta0[grp], x0, radius, params.delta,
-                         keep_gram=keep_models, work=ws.ring(hi - lo, p))
-        with np.errstate(divide="ignore", invalid="ignore"):
-            xg = fits.xi_acc / fits.count[..., None]
-        xg[0] = x0
-        xg = np.where(np.isnan(xg), np.inf, xg)
-        xi[:, sel] = xg
-        r_g = np.argmin(xg, axis=0)                                    # first minimum
-        idx_n = np.arange(hi - lo)[:, None]
-        bg = np.swapaxes(fits.beta, 2, 3)[r_g, idx_n, idx_c]            # (n, 3, p)
-        beta[sel, :, :p] = bg
-        pred[sel] = design.predict(bg)
-        if keep_models:
-            pinv[sel, :, :p, :p] = np.linalg.inv(fits.gram[r_g, idx_n])
-    r_opt = np.argmin(xi, axis=0)                                      # (N, 3)
-    out = {"index": index, "ring": ring, "pred": pred, "rank": rank, "r_opt": r_opt, "xi": xi,
-           "xi_opt": xi[r_opt, np.arange(n_c)[:, None], idx_c], "beta": beta}
-    if keep_models:
-        out["P"] = pinv
-        out["transform"] = transform
-    return out
+    beta = np.swapaxes(fits.beta, 2, 3)[r_g, idx_n, idx_c]             # (N, 3, p)
+    gram = None if fits.gram is None else fits.gram[r_g, idx_n]
+    return beta, gram
 
 
 def fit(color: np.ndarray, color_var: np.ndarray, features: dict, feature_var: dict | None = None,
@@ -493,7 +566,7 @@ def fit(color: np.ndarray, color_var: np.ndarray, features: dict, feature_var: d
     color_var : (H, W, 3) float64
         Variance of each pixel mean (``Buffers.variance_of_mean``); +inf where
         unknown (one subset), see the module docstring.
-    features : dict name -> (H, W, C)
+    features : dict name -> (H, W, C) or None
         Any of 'depth', 'normal', 'albedo' (``PASSES``); absent ones are skipped.
     feature_var : dict name -> (H, W, C) or None
         Variance of the feature means, for the TSVD threshold (unknown = 0);
@@ -516,24 +589,13 @@ def fit(color: np.ndarray, color_var: np.ndarray, features: dict, feature_var: d
 
     Notes
     -----
-    Memory: the padded input planes (8 (D + 7 + G) bytes per pixel, D the
-    feature count with position, G the feature groups: 152 bytes with all
-    three passes), running sums (88 bytes per pixel) and one workspace reused
-    by every chunk (``_Workspace``), about
-    ``chunk * 8 * (2 K max(D, 8) + 16 R (D + 4) + (R+1) (D+4)^2)`` bytes
-    (K = (2R+1)^2; 20.6 MB for a chunk of 256), plus per-chunk
-    temporaries of a few MB.  The window planes are gathered straight into
-    the workspace, the design ``z`` is built one ring at a time
-    (:class:`core.lp_solve.Design`), centres are sorted by model size so each
-    size group is a slice, and the inputs derived from the buffers (variances
-    of the means) are dropped before the fit.  Measured peak (tracemalloc, one
-    :func:`reconstruct`, inputs excluded, all passes, default parameters):
-    about 360 bytes per pixel at 512x512 (370 on a textured scene of rank 8),
-    280 at 1024x1024.  The automatic chunk (``chunk = 0``: pixels / 1024,
-    clamped to 32..256) keeps the workspace under ~80 bytes per pixel, so
-    small images do not pay a fixed 20 MB (a chunk of 256 cost ~680 bytes per
-    pixel at 256x256; the automatic 64 ~400, ~25 % slower there).
-    Chunks are also limited to a band of rows so their scatter stays local.
+    Memory: the inputs are packed once into padded planes (:class:`_Frame`),
+    every chunk of centres reuses one workspace (:class:`_Workspace`) into
+    which the window planes are gathered, the design ``z`` is built one ring
+    at a time (:class:`core.lp_solve.Design`), centres are sorted by model
+    size so each size group is a slice, chunks are limited to a band of rows
+    so their scatter stays local, and the derived inputs are dropped before
+    the fit.  Byte counts and measured peaks: docs/notes/lp.md.
     """
     params = params or Params()
     return _fit_frame(_pack(color, color_var, features, feature_var, n, params), params, keep_models)
@@ -543,7 +605,8 @@ def _pack(color, color_var, features, feature_var, n, params: Params) -> _Frame:
     color = np.asarray(color, np.float64)
     if color.ndim != 3 or color.shape[-1] != 3:
         raise ValueError(f"color must be (H, W, 3), got {color.shape}")
-    return _Frame(color, color_var, features, feature_var, n, int(params.radius), params.variance_corrected)
+    return _Frame(color, color_var, features or {}, feature_var, n, int(params.radius),
+                  params.variance_corrected)
 
 
 def _fit_buffers(buf: Buffers, params: Params) -> LPFit:
@@ -555,25 +618,68 @@ def _fit_buffers(buf: Buffers, params: Params) -> LPFit:
 def _fit_frame(frame: _Frame, params: Params, keep_models: bool = False) -> LPFit:
     """Sec. 4-5 on a packed frame (see :func:`fit`); releases the frame's planes."""
     h, w = frame.h, frame.w
-    radius = int(params.radius)
-    k = (2 * radius + 1) ** 2
     chunk = int(params.chunk) if int(params.chunk) > 0 else auto_chunk(h * w)
     chunk = max(1, min(chunk, h * w))
-    ws = _Workspace(chunk, k, frame.dim, radius)
     acc = _Accumulator(frame)
+    placed, passes = _place_centres(frame, acc, params, chunk, keep_models)
+    centres = placed["centers"]
+    if keep_models and centres:
+        allc = np.concatenate(centres)
+        cfeat = np.zeros((len(allc), frame.dim))
+        cfeat[:, 2:] = frame.planes[:frame.dim - 2, frame.flat(allc[:, 0], allc[:, 1])].T
+    frame.release()                      # the inputs are no longer needed: lower the peak
+    image, error, dxi, radius = acc.averages()
+    c_rad, c_rank, c_err = placed["r_opt"], placed["rank"], placed["xi_opt"]
+    out = LPFit(
+        image=image,
+        error=error,
+        delta_error=dxi,
+        radius=radius,
+        centers=np.concatenate(centres) if centres else np.zeros((0, 2), np.int64),
+        center_radius=np.concatenate(c_rad) if c_rad else np.zeros((0, 3), np.int64),
+        center_rank=np.concatenate(c_rank) if c_rank else np.zeros(0, np.int64),
+        center_error=np.concatenate(c_err) if c_err else np.zeros((0, 3)),
+        passes=passes,
+    )
+    if keep_models and centres:
+        out.models = {key: np.concatenate(placed[key]) for key in ("beta", "P", "transform")}
+        out.models["center_features"] = cfeat
+    return out
+
+
+def _granularities(granularity: int, radius: int) -> list:
+    """Sec. 5.1's granularity factors g, g // 2, g // 4, ..., 1; g = 0 means
+    the filtering window width 2R+1 (the paper's example)."""
+    grans = [max(int(granularity) or (2 * int(radius) + 1), 1)]
+    while grans[-1] > 1:
+        grans.append(grans[-1] // 2)
+    return grans
+
+
+def _place_centres(frame: _Frame, acc: _Accumulator, params: Params, chunk: int, keep_models: bool):
+    """Sec. 5.1: iterative construction of the models.  In the pass of
+    granularity g every pixel whose row and column are multiples of g, that is
+    no centre yet and that no earlier model predicts in every channel, becomes
+    a centre; its model (:func:`fit_centres`) predicts its optimal window,
+    accumulated into ``acc``.  The last pass (g = 1) covers every pixel.
+
+    Returns (per-chunk lists ``centers`` (n, 2), ``r_opt``, ``rank``,
+    ``xi_opt`` and, with ``keep_models``, ``beta``, ``P``, ``transform``; the
+    number of passes that placed centres).
+    """
+    h, w = frame.h, frame.w
+    radius = int(params.radius)
+    ws = _Workspace(chunk, (2 * radius + 1) ** 2, frame.dim, radius)
     covered = np.zeros((h, w), bool)
     is_centre = np.zeros((h, w), bool)
     rows, cols = np.arange(h)[:, None], np.arange(w)[None, :]
-    grans = [max(int(params.granularity) or (2 * radius + 1), 1)]
-    while grans[-1] > 1:
-        grans.append(grans[-1] // 2)
     # rows per chunk: keep the scattered band (and the bincount temporaries of
     # ``_Accumulator.add``, 8 bytes per band pixel) under ~2^17 pixels
     band_rows = max(1, (1 << 17) // frame.wp - 2 * radius)
-    centres, c_rad, c_rank, c_err = [], [], [], []
-    models = {"beta": [], "P": [], "transform": []} if keep_models else None
+    kept = ("r_opt", "rank", "xi_opt") + (("beta", "P", "transform") if keep_models else ())
+    placed = {key: [] for key in ("centers",) + kept}
     passes = 0
-    for g in grans:
+    for g in _granularities(params.granularity, radius):
         cy, cx = np.nonzero((rows % g == 0) & (cols % g == 0) & ~is_centre & ~covered)
         if len(cy) == 0:
             continue
@@ -585,50 +691,13 @@ def _fit_frame(frame: _Frame, params: Params, keep_models: bool = False) -> LPFi
             yy, xx = cy[s0:s1], cx[s0:s1]
             res = fit_centres(frame, frame.flat(yy, xx), params, keep_models, ws)
             acc.add(res)
-            centres.append(np.stack([yy, xx], axis=1))
-            c_rad.append(res["r_opt"])
-            c_rank.append(res["rank"])
-            c_err.append(res["xi_opt"])
-            if keep_models:
-                models["beta"].append(res["beta"])
-                models["P"].append(res["P"])
-                models["transform"].append(res["transform"])
+            placed["centers"].append(np.stack([yy, xx], axis=1))
+            for key in kept:
+                placed[key].append(res[key])
             del res
             s0 = s1
         covered = (acc.crop(acc.cnt) > 0).all(axis=0)
-    del ws
-
-    if keep_models and centres:
-        allc = np.concatenate(centres)
-        cfeat = np.zeros((len(allc), frame.dim))
-        cfeat[:, 2:] = frame.planes[:frame.dim - 2, frame.flat(allc[:, 0], allc[:, 1])].T
-    frame.release()                      # the inputs are no longer needed: lower the peak
-    safe = np.maximum(acc.crop(acc.cnt), 1.0)
-    image = np.ascontiguousarray(np.moveaxis(acc.crop(acc.pred) / safe, 0, -1))
-    acc.pred = None
-    image[~np.isfinite(image)] = 0.0
-    err = _finite_errors(acc.crop(acc.err) / safe)
-    acc.err = None
-    error = err.mean(axis=0)
-    del err
-    dxi = np.ascontiguousarray(np.moveaxis(_finite_errors(acc.crop(acc.dxi) / safe), 0, -1))
-    acc.dxi = None
-    out = LPFit(
-        image=image,
-        error=error,
-        delta_error=dxi,
-        radius=acc.crop(acc.rad[None])[0] / safe.sum(axis=0),
-        centers=np.concatenate(centres) if centres else np.zeros((0, 2), np.int64),
-        center_radius=np.concatenate(c_rad) if c_rad else np.zeros((0, 3), np.int64),
-        center_rank=np.concatenate(c_rank) if c_rank else np.zeros(0, np.int64),
-        center_error=np.concatenate(c_err) if c_err else np.zeros((0, 3)),
-        passes=passes,
-    )
-    if keep_models and centres:
-        models = {key: np.concatenate(v) for key, v in models.items()}
-        models["center_features"] = cfeat
-        out.models = models
-    return out
+    return placed, passes
 
 
 class _Accumulator:
@@ -662,7 +731,7 @@ class _Accumulator:
         sl = slice(lo, lo + span)
         k = index.shape[1]
         pred = res["pred"]                                               # (N, 3, K)
-        expo = -4.0 / (res["rank"].astype(np.float64) + 4.0)             # (N,)
+        expo = -gain_exponent(res["rank"])                               # (N,) -4/(d_c+4)
         positions = np.arange(k)
         logn = self.frame.logn
         for c in range(3):
@@ -684,6 +753,25 @@ class _Accumulator:
             self.cnt[c, sl] += np.bincount(local, None, span).astype(np.float32)
             rad = np.repeat(r_opt[:, c].astype(np.float64), length)
             self.rad[sl] += np.bincount(local, rad, span).astype(np.float32)
+
+    def averages(self):
+        """The averages over the models covering each pixel (Sec. 5.1), each
+        sum released once read: ``image`` (H, W, 3) (non-finite -> 0),
+        ``error`` (H, W) (RGB mean), ``delta_error`` (H, W, 3) (errors through
+        :func:`_finite_errors`) and ``radius`` (H, W) the mean r_opt over the
+        covering models and channels."""
+        safe = np.maximum(self.crop(self.cnt), 1.0)
+        image = np.ascontiguousarray(np.moveaxis(self.crop(self.pred) / safe, 0, -1))
+        self.pred = None
+        image[~np.isfinite(image)] = 0.0
+        err = _finite_errors(self.crop(self.err) / safe)
+        self.err = None
+        error = err.mean(axis=0)
+        del err
+        dxi = np.ascontiguousarray(np.moveaxis(_finite_errors(self.crop(self.dxi) / safe), 0, -1))
+        self.dxi = None
+        radius = self.crop(self.rad[None])[0] / safe.sum(axis=0)
+        return image, error, dxi, radius
 
 
 def _finite_errors(err: np.ndarray) -> np.ndarray:
@@ -713,25 +801,26 @@ def reconstruct(buf: Buffers, params: Params | None = None) -> MethodResult:
     -------
     MethodResult
         ``image`` (H, W, 3), ``error`` (H, W) = estimated squared error
-        ``xi_c(k_opt)`` (Eq. 4) of the covering models averaged over RGB, and
-        ``info`` with ``center_fraction`` (paper: 4.7-18.9 %), ``centers``,
-        ``passes``, ``mean_radius``, ``mean_rank`` (scalars) and ``lp_fit``
-        (the :class:`LPFit`, used by :func:`sample_map`).
+        ``xi_c(k_opt)`` (Eq. 4) of the covering models averaged over RGB,
+        ``fit`` the :class:`LPFit` (reused by :func:`sample_map`),
+        ``dimension`` the mean TSVD rank of the centres (0 with none), and
+        ``info`` with the scalars ``center_fraction`` (paper: 4.7-18.9 %),
+        ``centers``, ``passes``, ``mean_radius``, ``mean_rank``.
     """
     params = params if isinstance(params, Params) else params_from_dict(Params, params)
     return _result(_fit_buffers(buf, params))
 
 
 def _result(res: LPFit) -> MethodResult:
+    mean_rank = float(res.center_rank.mean()) if len(res.centers) else 0.0
     info = {
         "center_fraction": res.center_fraction,
         "centers": int(len(res.centers)),
         "passes": int(res.passes),
         "mean_radius": float(res.center_radius.mean()) if len(res.centers) else 0.0,
-        "mean_rank": float(res.center_rank.mean()) if len(res.centers) else 0.0,
-        "lp_fit": res,
+        "mean_rank": mean_rank,
     }
-    return MethodResult(res.image, res.error, info)
+    return MethodResult(res.image, res.error, info, dimension=mean_rank, fit=res)
 
 
 def sample_map(buf: Buffers, result: MethodResult, budget: int, params: Params | None = None,
@@ -743,13 +832,15 @@ def sample_map(buf: Buffers, result: MethodResult, budget: int, params: Params |
     pixel i), relative error ``rho_i = Delta_i xi / (f_hat(x_i)^2 + epsilon)``
     per channel (averaged over RGB), and ``Delta n_i = T rho_i / sum_j rho_j``
     rounded by :func:`core.method.allocate` so the map sums to ``budget``.
+    The fit is ``result.fit``; it is recomputed from ``buf`` when ``result``
+    carries none of this frame's size.
 
     Returns
     -------
     (H, W) int64, >= 0, summing to ``budget``.
     """
     params = params if isinstance(params, Params) else params_from_dict(Params, params)
-    fitres = result.info.get("lp_fit") if result is not None else None
+    fitres = result.fit if result is not None else None
     if not isinstance(fitres, LPFit) or fitres.image.shape[:2] != buf.shape:
         fitres = _fit_buffers(buf, params)
     if state is not None:
@@ -759,9 +850,16 @@ def sample_map(buf: Buffers, result: MethodResult, budget: int, params: Params |
     return allocate(rho, budget)
 
 
-def denoise(color: np.ndarray, color_var: np.ndarray, features: dict, params: Params | None = None,
-            feature_var: dict | None = None, n: np.ndarray | None = None) -> MethodResult:
-    """LP on plain arrays: ``color`` (H, W, 3), ``color_var`` (H, W, 3) variance
-    of the mean, ``features`` name -> (H, W, C) (see :func:`fit`)."""
+def denoise(color: np.ndarray, color_var: np.ndarray, features: dict | None = None,
+            feature_var: dict | None = None, n: np.ndarray | None = None,
+            params: Params | dict | None = None) -> MethodResult:
+    """LP on plain arrays (see :func:`fit` for the arguments); returns the same
+    :class:`~core.method.MethodResult` as :func:`reconstruct`.
+
+    color : (H, W, 3) means; color_var : (H, W, 3) variance of the mean (+inf
+    unknown); features : name -> (H, W, C) (any of ``PASSES``, None = none);
+    feature_var : name -> (H, W, C) or None; n : (H, W) or scalar samples per
+    pixel or None (one); params : Params or dict.
+    """
     params = params if isinstance(params, Params) else params_from_dict(Params, params)
     return _result(fit(color, color_var, features, feature_var, n, params))

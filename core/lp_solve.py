@@ -259,27 +259,43 @@ def ring_fits(z: np.ndarray, y: np.ndarray, w: np.ndarray, s: np.ndarray,
     0 and ``beta(0)`` reproduces ``y_c`` exactly).  One matrix product per ring
     gives the ring's moments ``[z y'] W [z y']^T`` (``[z y']`` is built one
     ring at a time, so the scratch is 8R pixels wide, not K); the normal equations of
-    all rings are their cumulative sums and are solved in one batch.  Eq. 5's
-    ring sum is evaluated from the ring moments as
-    ``beta^T A beta - 2 beta^T b + y'^T y'`` (clamped at 0 before the variance
-    is subtracted, against rounding), so no second pass over the pixels is
-    needed.
+    all rings are their cumulative sums and are solved in one batch
+    (:func:`_ring_models`); Eq. 7 is :func:`_loo_error` and Eq. 5's ring sums,
+    evaluated from the same ring moments, :func:`_ring_errors`.
     """
     n, p, k = z.shape
     c = y.shape[1]
     radius = int(radius)
     starts = ring_layout(radius)[3]
+    columns = _columns(z)
+    mom = _ring_moments(columns, y, w, beta0, starts, p, work or {})
+    beta, count, gram, low = _ring_models(mom, p, delta, keep_gram)
+    xi_acc = np.empty((radius + 1, n, c))
+    xi_acc[0] = xi0
+    if radius >= 1:
+        # P(k(1)) z_i uses the Cholesky factors of k(1) from the solve above
+        xi_acc[1] = _loo_error(columns, beta[1], low[:, :, n:2 * n], y, w, s, beta0)
+    if radius >= 2:
+        xi_acc[2:] = xi_acc[1] + np.cumsum(_ring_errors(mom, beta[1:-1], s, w, starts, p), axis=0)
+    beta[:, :, 0, :] += beta0
+    return RingFits(beta, xi_acc, count, gram)
+
+
+def _ring_moments(columns, y, w, beta0, starts, p, work: dict) -> np.ndarray:
+    """Moments ``[z y'] W [z y']^T`` of every ring (R+1, N, p + C, p + C), one
+    batched matrix product per ring, with ``y' = y - beta0``; ``[z y']`` is
+    built one ring at a time into the scratch ``work['m']`` / ``work['mw']``
+    (and the result into ``work['mom']``) when given."""
+    n, c = y.shape[:2]
+    radius = len(starts) - 2
     q = p + c
     wide = int(np.diff(starts).max())                                   # the widest ring (8R)
-    columns = _columns(z)
-    work = work or {}
     m = work.get("m")
     m = np.empty(n * q * wide) if m is None else m
     mw = work.get("mw")
     mw = np.empty(n * q * wide) if mw is None else mw
     mom = work.get("mom")
     mom = np.empty((radius + 1, n, q, q)) if mom is None else mom
-    # moments [z y'] W [z y']^T of every ring: one batched matrix product per ring
     for r in range(radius + 1):
         lo, hi = starts[r], starts[r + 1]
         mr = m[:n * q * (hi - lo)].reshape(n, q, hi - lo)
@@ -288,45 +304,77 @@ def ring_fits(z: np.ndarray, y: np.ndarray, w: np.ndarray, s: np.ndarray,
         mwr = mw[:n * q * (hi - lo)].reshape(n, q, hi - lo)
         np.multiply(mr, w[:, None, lo:hi], out=mwr)
         np.matmul(mwr, np.swapaxes(mr, 1, 2), out=mom[r])
-    # the normal equations of k(r) are the running sums of the ring moments,
-    # accumulated straight into the stack-last layout of the batched Cholesky
-    # solve (which works in place): A = delta I + X^T X, b = X^T Y'
-    at = np.empty((p, p, radius + 1, n))
+    return mom
+
+
+def _ring_models(mom: np.ndarray, p: int, delta: float, keep_gram: bool):
+    """Eq. 3 at every ring boundary: ``beta(k(r))`` (R+1, N, p, C) for the
+    centred observations, by one batched Cholesky solve of the regularised
+    normal equations ``(delta I + X^T X) beta = X^T Y'`` of k(r), the running
+    sums of the ring moments (accumulated straight into the stack-last layout
+    of the in-place solve).
+
+    Returns beta, count (R+1, N) the weight sum of k(r), gram (R+1, N, p, p)
+    ``delta I + X^T X`` or None, and the Cholesky factors (p, p, (R+1) N).
+    """
+    r1, n, q = mom.shape[:3]
+    c = q - p
+    at = np.empty((p, p, r1, n))
     np.cumsum(np.moveaxis(mom[:, :, :p, :p], (0, 1), (2, 3)), axis=2, out=at)
-    bt = np.empty((p, c, radius + 1, n))
+    bt = np.empty((p, c, r1, n))
     np.cumsum(np.moveaxis(mom[:, :, :p, p:], (0, 1), (2, 3)), axis=2, out=bt)
     count = at[0, 0].copy()                                             # (R+1, N)
     for j in range(p):
         at[j, j] += delta
-    a = np.ascontiguousarray(np.moveaxis(at, (2, 3), (0, 1))) if keep_gram else None
+    gram = np.ascontiguousarray(np.moveaxis(at, (2, 3), (0, 1))) if keep_gram else None
     low = _cholesky_t(at.reshape(p, p, -1))                             # (p, p, (R+1) N)
-    beta = np.moveaxis(_cho_solve_t(low, bt.reshape(p, c, -1)), -1, 0).reshape(radius + 1, n, p, c)
-    xi_acc = np.empty((radius + 1, n, c))
-    xi_acc[0] = xi0
-    if radius >= 1:
-        # Eq. 7: closed-form leave-one-out over the 9 pixels of k(1) (Allen 1974)
-        z9 = columns(0, 9, np.empty((n, p, 9)))
-        # P(k(1)) z_i, with the Cholesky factors of k(1) from the solve above
-        pz = _cho_solve_t(low[:, :, n:2 * n], np.moveaxis(z9, 0, -1).copy())
-        pz = np.moveaxis(pz, -1, 0)
-        h = (z9 * pz).sum(axis=1)                                       # (N, 9)
-        res = np.matmul(np.swapaxes(beta[1], 1, 2), z9) - (y[:, :, :9] - beta0[:, :, None])
-        res /= np.maximum(1.0 - h, 1e-12)[:, None, :]
-        res *= res
-        res -= s[:, :, :9]
-        res *= w[:, None, :9]
-        xi_acc[1] = res.sum(axis=2)
-    if radius >= 2:
-        # Eq. 5: the model of k(r-1) (training set) tested on ring r (test set)
-        bt = beta[1:-1]                                                 # beta(k(r-1))
-        quad = (np.matmul(mom[2:, :, :p, :p], bt) * bt).sum(axis=2)
-        quad -= 2.0 * (mom[2:, :, :p, p:] * bt).sum(axis=2)
-        quad += np.diagonal(mom[2:, :, p:, p:], axis1=2, axis2=3)
-        np.maximum(quad, 0.0, out=quad)
-        # sum_{i in ring} w_i s_i
-        ws_ring = np.add.reduceat(s[:, :, starts[2]:] * w[:, None, starts[2]:],
-                                  starts[2:-1] - starts[2], axis=2)     # (N, C, R-1)
-        quad -= np.moveaxis(ws_ring, 2, 0)
-        xi_acc[2:] = xi_acc[1] + np.cumsum(quad, axis=0)
-    beta[:, :, 0, :] += beta0
-    return RingFits(beta, xi_acc, count, a)
+    beta = np.moveaxis(_cho_solve_t(low, bt.reshape(p, c, -1)), -1, 0).reshape(r1, n, p, c)
+    return beta, count, gram, low
+
+
+def _loo_error(columns, beta1: np.ndarray, low1: np.ndarray, y: np.ndarray, w: np.ndarray,
+               s: np.ndarray, beta0: np.ndarray) -> np.ndarray:
+    """Eq. 7 of Moon et al. 2015: ``xi_acc(k(1))``, the closed-form
+    leave-one-out error (Allen 1974) over the 9 pixels of k(1),
+    ``sum_i w_i [((beta(k(1))^T z_i - y_i) / (1 - z_i^T P(k(1)) z_i))^2 - s_i]``.
+
+    columns : ``columns(lo, hi, out)`` of the design (see :class:`Design`).
+    beta1 : (N, p, C) model of k(1) for the centred observations ``y - beta0``.
+    low1 : (p, p, N) Cholesky factors of ``P(k(1))^-1 = delta I + X^T X``
+        (:func:`_cholesky_t` layout).
+    y, w, s, beta0 : as in :func:`ring_fits`.  Returns (N, C).
+    """
+    n, p = beta1.shape[:2]
+    z9 = columns(0, 9, np.empty((n, p, 9)))
+    pz = _cho_solve_t(low1, np.moveaxis(z9, 0, -1).copy())             # P(k(1)) z_i
+    pz = np.moveaxis(pz, -1, 0)
+    h = (z9 * pz).sum(axis=1)                                           # (N, 9)
+    res = np.matmul(np.swapaxes(beta1, 1, 2), z9) - (y[:, :, :9] - beta0[:, :, None])
+    res /= np.maximum(1.0 - h, 1e-12)[:, None, :]
+    res *= res
+    res -= s[:, :, :9]
+    res *= w[:, None, :9]
+    return res.sum(axis=2)
+
+
+def _ring_errors(mom: np.ndarray, beta_prev: np.ndarray, s: np.ndarray, w: np.ndarray,
+                 starts: np.ndarray, p: int) -> np.ndarray:
+    """Eq. 5 of Moon et al. 2015 for rings r = 2 .. R: the model of k(r-1)
+    (training set) tested on the 8r pixels of ring r (test set),
+    ``sum_{i in ring r} w_i [(beta(k(r-1))^T z_i - y_i)^2 - s_i]``.
+
+    Evaluated from the ring moments ``mom`` (:func:`_ring_moments`) as
+    ``beta^T A beta - 2 beta^T b + y'^T y'`` (clamped at 0 before the
+    variance is subtracted, against rounding), so no second pass over the
+    pixels is needed.  ``beta_prev`` (R-1, N, p, C): ``beta(k(r-1))`` for the
+    centred observations.  Returns (R-1, N, C); Eq. 4 accumulates them.
+    """
+    quad = (np.matmul(mom[2:, :, :p, :p], beta_prev) * beta_prev).sum(axis=2)
+    quad -= 2.0 * (mom[2:, :, :p, p:] * beta_prev).sum(axis=2)
+    quad += np.diagonal(mom[2:, :, p:, p:], axis1=2, axis2=3)
+    np.maximum(quad, 0.0, out=quad)
+    # sum_{i in ring} w_i s_i
+    ws_ring = np.add.reduceat(s[:, :, starts[2]:] * w[:, None, starts[2]:],
+                              starts[2:-1] - starts[2], axis=2)         # (N, C, R-1)
+    quad -= np.moveaxis(ws_ring, 2, 0)
+    return quad

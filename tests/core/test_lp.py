@@ -266,7 +266,7 @@ def test_linear_truth_windows_grow_to_the_maximum_and_error_drops():
     truth = 0.7 * feats["albedo"] + 0.05 * feats["depth"]           # linear in the features
     buf = make_buffers(truth, feats, sigma=0.3, seed=3)
     res = lp.reconstruct(buf)
-    fit = res.info["lp_fit"]
+    fit = res.fit
     assert fit.radius.mean() > 0.75 * 9
     assert mse(res.image, truth) < 0.05 * mse(buf.color.mean, truth)
     assert 0.0 < res.info["center_fraction"] < 0.2
@@ -279,7 +279,7 @@ def test_windows_shrink_at_an_edge_the_features_do_not_explain():
     xx = np.arange(w)[None, :, None]
     truth = (0.6 * feats["albedo"]) * np.where(xx < 32, 1.0, 0.15)  # a shadow edge at x = 32
     buf = make_buffers(truth, feats, sigma=0.1, seed=5)
-    fit = lp.reconstruct(buf).info["lp_fit"]
+    fit = lp.reconstruct(buf).fit
     near = fit.radius[:, 30:34].mean()
     far = np.concatenate([fit.radius[:, :16], fit.radius[:, 48:]], axis=1).mean()
     assert near < 0.6 * far
@@ -300,7 +300,7 @@ def test_step_in_a_feature_is_kept_sharp():
     res = lp.reconstruct(buf)
     edge = slice(17, 23)
     assert mse(res.image[:, edge], truth[:, edge]) < 0.2 * mse(buf.color.mean[:, edge], truth[:, edge])
-    assert res.info["lp_fit"].radius.mean() > 4
+    assert res.fit.radius.mean() > 4
 
 
 def test_zero_variance_input_is_returned_unchanged():
@@ -429,7 +429,7 @@ def test_literal_error_estimate_prefers_smaller_windows():
     corrected = lp.reconstruct(buf, lp.Params(variance_corrected=True))
     literal = lp.reconstruct(buf, lp.Params(variance_corrected=False))
     assert np.all(np.isfinite(literal.image)) and np.all(literal.error >= 0)
-    assert literal.info["lp_fit"].radius.mean() < corrected.info["lp_fit"].radius.mean()
+    assert literal.fit.radius.mean() < corrected.fit.radius.mean()
     assert literal.info["center_fraction"] > corrected.info["center_fraction"]
     assert mse(literal.image, truth) < mse(buf.color.mean, truth)
 
@@ -442,7 +442,7 @@ def test_single_subset_has_infinite_variance_and_still_filters():
     assert np.all(np.isinf(buf.variance_of_mean()))
     res = lp.reconstruct(buf)
     assert np.all(np.isfinite(res.image)) and np.all(np.isfinite(res.error))
-    assert np.all(res.info["lp_fit"].center_radius > 0)   # xi(k(0)) = inf is never chosen
+    assert np.all(res.fit.center_radius > 0)   # xi(k(0)) = inf is never chosen
     assert mse(res.image, truth) < 0.3 * mse(buf.color.mean, truth)
 
 
@@ -554,7 +554,7 @@ def test_sample_map_is_sec_5_2_and_sums_to_the_budget():
     counts = lp.sample_map(buf, res, 4 * h * w, params, state)
     assert counts.dtype == np.int64 and counts.shape == (h, w)
     assert counts.sum() == 4 * h * w and counts.min() >= 0
-    fit = res.info["lp_fit"]
+    fit = res.fit
     rho = (fit.delta_error / (fit.image ** 2 + params.epsilon)).mean(axis=-1)
     assert np.array_equal(counts, allocate(rho, 4 * h * w))
     assert state["iterations"] == 1
@@ -638,8 +638,8 @@ def test_noisy_feature_is_dropped_by_the_tsvd():
         fl.append(f)
     noisy = Buffers.from_subsets(colors, [4] * 4, fl)
     quiet = Buffers.from_subsets(colors, [4] * 4, [dict(fl[0])] * 4)   # same values, no variance
-    rn = lp.reconstruct(noisy).info["lp_fit"].center_rank.mean()
-    rq = lp.reconstruct(quiet).info["lp_fit"].center_rank.mean()
+    rn = lp.reconstruct(noisy).fit.center_rank.mean()
+    rq = lp.reconstruct(quiet).fit.center_rank.mean()
     assert rn < rq - 2
 
 
