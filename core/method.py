@@ -12,7 +12,7 @@ reconstruction of plain arrays, for callers without a Buffers object.
 """
 from __future__ import annotations
 
-from dataclasses import dataclass, field, fields
+from dataclasses import dataclass, field, fields, replace
 from typing import Any, Protocol, runtime_checkable
 
 import numpy as np
@@ -275,8 +275,8 @@ def consistency_guard(result: MethodResult, buf, z: float = 3.0) -> MethodResult
     bad = (off & known).any(axis=-1) & known.all(axis=-1)
     if not bad.any():
         info = dict(result.info, guard_fraction=0.0)
-        return MethodResult(result.image, result.error, info)
+        return replace(result, info=info)
     image = np.where(bad[..., None], mean, result.image)
     err = np.where(bad, np.where(known, var, 0.0).mean(axis=-1), result.error)
     info = dict(result.info, guard_fraction=float(bad.mean()))
-    return MethodResult(image, err, info)
+    return replace(result, image=image, error=err, info=info)

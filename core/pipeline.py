@@ -121,6 +121,23 @@ class Progress:
 
 
 @dataclass
+class Prior:
+    """Samples carried into a run from earlier frames (e.g. reprojected from the
+    previous frame), the one way history enters the loop.
+
+    buffers : Buffers of the run's domain, merged after the initial pass and
+        counted in ``AdaptiveRun.reused``, not against the render budget.
+    state : entries merged into the sampler's state before its first map
+        (e.g. Schalk's Alg. 2 reads ``state["probability"]``).
+    info : scalar diagnostics for the run's summary.
+    """
+
+    buffers: Buffers
+    state: dict = field(default_factory=dict)
+    info: dict = field(default_factory=dict)
+
+
+@dataclass
 class Timing:
     render: float = 0.0
     adapt: float = 0.0
@@ -138,10 +155,9 @@ class AdaptiveRun:
                  method: Method | None = None):
         """``method``: the :class:`core.method.Method` to run (default: the
         registered method ``options.method``; wrappers such as the oracle are
-        passed here).  ``prior``: optional callable ``prior(run) -> Buffers |
-        None`` called once after the initial pass; the Buffers it returns (e.g.
-        samples reprojected from the previous frame) are merged in and counted
-        in ``reused``, not against the render budget."""
+        passed here).  ``prior``: optional callable ``prior(buffers) -> Prior |
+        None``, called once with the initial pass's Buffers (read only) to
+        give the samples carried from earlier frames (:class:`Prior`)."""
         self.executor = executor
         self.options = options
         self.method = methods.get(options.method) if method is None else method
@@ -167,6 +183,7 @@ class AdaptiveRun:
         self.checkpoint_path = checkpoint
         self.prior = prior
         self.reused = np.zeros((self.height, self.width))  # samples merged from ``prior``
+        self.prior_info: dict = {}
         self.history: list = []
 
     # ------------------------------------------------------------- accounting
@@ -190,10 +207,13 @@ class AdaptiveRun:
         if self.buffers is None:
             yield from self._initial_pass()
             if self.prior is not None:
-                extra = self.prior(self)
-                if extra is not None:
+                carried = self.prior(self.buffers)
+                if carried is not None:
+                    extra = carried.buffers
                     self.reused += extra.n
                     self.buffers.merge(extra)
+                    self.method_state.update(carried.state)
+                    self.prior_info = dict(carried.info)
                     yield Progress("initial", 0, self._fraction(),
                                    f"reused {int(extra.n.sum())} samples on "
                                    f"{int((extra.n > 0).sum())} pixels from the previous frame")

@@ -135,3 +135,29 @@ def test_awr_loop_does_not_reconstruct_per_iteration(monkeypatch):
     assert calls["var"] == runs["var"].iteration >= 2
     runs["awr"].reconstruct()
     assert calls["awr"] == 1
+
+
+def test_prior_samples_are_merged_reused_and_not_charged_to_the_budget():
+    from core.buffers import Buffers
+    from core.pipeline import Prior
+    h, w = 16, 20
+    truth = _truth(h, w)
+    seen = {}
+    ones = {"alpha": np.ones((h, w, 1))}
+    carried = Buffers.from_subsets([truth, truth * 1.01], [3, 3], [ones, ones])
+
+    def prior(buffers):
+        seen["n"] = buffers.n.copy()  # the initial pass, before anything is merged
+        return Prior(carried, state={"probability": np.full((h, w), 0.5)}, info={"fraction": 1.0})
+
+    run = AdaptiveRun(FakeExecutor(truth), Options(method="var", spp=6, initial_spp=2, subsets=2,
+                                                   task_cost=64), prior=prior)
+    for _ in run.steps():
+        pass
+    np.testing.assert_array_equal(seen["n"], np.full((h, w), 2.0))
+    np.testing.assert_array_equal(run.reused, carried.n)
+    assert run.prior_info == {"fraction": 1.0}
+    assert "probability" in run.method_state
+    budget = 6 * h * w
+    assert abs(run.samples_rendered - budget) <= 0.01 * budget + 1
+    assert run.buffers.n.sum() == run.samples_rendered + carried.n.sum()
