@@ -1,64 +1,90 @@
 """RHF: denoising Monte Carlo renderings with a robust high-order function
-(Liu, Zheng, Yuan 2018, GRAPP; ``../shared/papers/rhf-liu2018-robust-high-order-function.txt``).
+(Liu, Zheng, Yuan 2018, "Denoising Monte Carlo renderings based on a robust
+high-order function", GRAPP).
 
-Pipeline (section / equation of the paper):
+What: sparse first-order regressions (Eq. 1-2) on prefiltered features, one
+per model centre, each predicting every pixel of its window, with the NL-means
+bandwidth k of its weights chosen per model from a hat-matrix estimate of bias
+and variance; overlapping predictions are averaged (Eq. 13).  Why: the
+per-model bandwidth trades noise against detail locally, and sparse models
+make a regression per pixel unnecessary.  The per-pixel error estimate (Eq. 12
+at the chosen k, merged by Eq. 13) and the active feature count
+(``MethodResult.dimension``) drive ``sample_map`` (LP, Moon et al. 2015,
+Sec. 5.2).
 
-1. Collaborative feature prefiltering (Sec. 3.2, Eq. 3-7): every feature
-   channel (normal xyz, albedo rgb, depth) is filtered by a joint NL-means
-   (``NLM(f_m, 0.25, true)``: spatial sigma_s = 2, patch range sigma_r = 1 with
-   the variance-cancelling distance of Rousselle et al. 2013, feature terms
-   sigma_m = 0.8 / 0.25 / 0.6), then by a self-guided image filter
-   ``GUID(f_m, f_m)`` with regularisation 0.001.
-2. Colour guidance (Sec. 3.3, Eq. 8): ``M = mean_m GUID(y, f^_m)`` over the 7
-   prefiltered feature channels.
-3. Centre and window selection (Sec. 3.5, Eq. 14): Sobel gradient of the
-   prefiltered features, patches of radius r_l, small windows (r_s) for
-   patches with high-frequency pixels, large (r_l) otherwise, medium (r_m)
-   models for pixels no window covers.
-4. First-order regression (Sec. 3.1, Eq. 1-2) per centre with D = 9 features
-   (pixel position 2, depth 1, normal 3, albedo 3), predicting every pixel of
-   its window; regression weights ``w(i, j) = NLM(M, k, false)`` (Sec. 3.3).
-5. Bandwidth selection (Sec. 3.4, Eq. 9-12): candidates k = {1, 1.5, 2, 3.5,
-   4}; bias and variance through the hat matrix (Eq. 11), T = 2 iterations
-   weighted by 1 - 1/(t+1)^2 (Eq. 12), block error (Eq. 9-10).
-6. Overlapping models averaged with their weights (Eq. 13).
+Pipeline (section / equation of the paper -> function):
 
-Choices where the paper is silent or ambiguous are documented in the
-docstrings of the functions that make them (search "Choice"), the main ones in
-``rhf_reconstruct``.  The per-pixel error estimate (Eq. 12 at the chosen k,
-merged by Eq. 13) is returned as ``MethodResult.error`` and drives
-``sample_map`` (LP Sec. 5.2 style).
+1. Input fixes (missing colour, variance, features) -> ``prepare_color``,
+   ``prepare_features``.
+2. Collaborative feature prefiltering, Sec. 3.2, Eq. 3-7: joint NL-means
+   ``NLM(f_m, 0.25, true)`` then ``GUID(f_m, f_m)`` -> ``prefilter_features``.
+3. Colour guide, Sec. 3.3, Eq. 8: ``M = mean_m GUID(y, f^_m)`` and its
+   variance -> ``colour_guide`` (``prefilter_color``, ``guide_variance``).
+4. Centres and windows, Sec. 3.5, Eq. 14 -> ``feature_gradient``,
+   ``select_centers``; regression weights ``w(i, j) = NLM(M, k, false)``
+   (Sec. 3.3) and the r_m fill models -> ``regression_weights``,
+   ``weight_chunks``, ``place_models``.
+5. Per-window regression and its hat-matrix bias / variance, Eq. 2, 9-12 ->
+   ``window_inputs``, ``window_error_terms`` (``hat_bias_variance``,
+   ``block_error``).
+6. Bandwidth selection, Eq. 10, 12 -> ``choose_bandwidth``,
+   ``predict_at_bandwidth``, ``error_at_bandwidth``.
+7. Accumulation of the window predictions and their combination, Eq. 13 ->
+   ``accumulate_predictions``, ``accumulate_variances``, ``combine_models``;
+   one iteration over all models -> ``regression_pass``; the T iterations of
+   Eq. 11-12 -> ``fit_models``; the driver -> ``rhf_reconstruct``.
 
-Special inputs
---------------
-* Non-finite colour (NaN / +-Inf) or pixels with no samples are *missing*:
-  they are filled from their neighbours for the guides and the NL-means
-  distances, excluded from every regression fit, and still predicted.
-* Variance +inf (fewer than 2 subsets, k < 2): the per-sample variance
-  s^2 = n Var(mean) is filled from the nearest pixels that have one; with no
-  variance anywhere, a robust (median) form of Immerkaer's (1996) Laplacian
-  noise estimate of the image is used (``noise_variance_estimate``).
-* Zero variance (k >= 2 and M2 = 0): the pixel mean is exact, so such channels
-  are returned unchanged (their error is 0); any smoothing could only add bias.
-* A pixel that every model ignores (all regression weights ~0) keeps its input
-  value rather than an extrapolated prediction, and weakly weighted pixels
-  lean on it (``Params.input_weight``, ``rhf_reconstruct``).
-* Magnitudes are clipped to 1e30 (features to 1e6) so squares stay finite; the
-  output is always finite.
+Choices where the paper is silent or ambiguous (details in each function):
+
+* Eq. 2 fits the input colours Y; M gives the weights and the first pilot
+  y_0 of Eq. 11 (``Params.regress_guide`` fits M instead).  The Eq. 5
+  distance on M uses the variance of M (``guide_variance``).
+* Regression weights have no spatial term (``regression_sigma_s = 0``).
+* Eq. 9-10 use the weighted *mean* error of the block (``block_error``); ties
+  go to the larger k (``choose_bandwidth``).
+* Iterations: y_{t-1} is the whole Eq. 13 image of iteration t-1 and
+  Var_{t-1}(s, k) its per-k variance maps merged with the same weights; only
+  the error estimate and k_opt are iterated, the fit always targets Y.
+  ``bias_noise_correction`` (off) subtracts the pilot's noise from bias^2.
+* tau thresholds each pixel's gradient; r_m models go to pixels that no
+  model weights >= ``coverage_weight`` (``select_centers``, ``place_models``).
+* Eq. 13 also averages in each pixel's own input at ``input_weight`` (0.02),
+  so weakly weighted pixels do not trust extrapolated predictions.
+* Design features are position, depth, normal, albedo (D = 9), each column
+  scaled per window, with a small relative ridge (``regularizer``); depth is
+  normalised by its 99th percentile (``_normalise_depth``).
+* Unstated radii: feature NL-means search 4 = 2 sigma_s, guided filter 1.
+
+Special inputs: non-finite colour or n <= 0 is *missing* (filled for the
+guides, excluded from every fit, still predicted); variance +inf is filled
+from neighbours or, with none anywhere, from a robust Immerkaer estimate
+(``noise_variance_estimate``); zero-variance channels are returned unchanged
+with error 0; magnitudes are clipped (1e30, features 1e6), the output is
+always finite.
+
+Measurements and design notes: docs/notes/rhf.md
 """
 from __future__ import annotations
 
 import time
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import numpy as np
 
 from .buffers import Buffers
 from .filters import (VALUE_LIMIT, VAR_LIMIT, box_sum, guided_filter, guided_filter_mean,
                       nlm_center_weights, nlm_filter, sobel_gradient, window_offsets)
-from .method import MethodResult, allocate, param, relative_error
+from .method import (MethodResult, allocate, param, params_from_dict, relative_error,
+                     sampling_gain)
 
+NAME = "rhf"
 PASSES = ("normal", "albedo", "depth")
+ADAPTIVE = True
+SAMPLER_USES_RESULT = True
+
+#: Model dimension assumed by ``sample_map`` when a result carries none (D = 9).
+DEFAULT_DIMENSION = 9.0
 
 #: Feature values are clipped to +-this (normals, albedo and normalised depth
 #: are O(1); larger values are corrupt input), their variances to its square.
@@ -66,6 +92,26 @@ FEATURE_LIMIT = 1e6
 
 #: The 7 feature channels (D - 2 of the paper) in the order used everywhere.
 FEATURE_ORDER = (("normal", 3), ("albedo", 3), ("depth", 1))
+
+#: Most window pixels (centres x (2r+1)^2) regressed together: the per-chunk
+#: temporaries (design rows, weights, the per-k products of
+#: ``hat_bias_variance``) take ~0.5 kB per window pixel, so this bounds them
+#: to ~4 MB whatever the window radius.
+CHUNK_PIXELS = 1 << 13
+
+#: Regression weights of every model are kept over the T iterations as
+#: 16-bit fixed point in [0, 1] (``round(w * WEIGHT_SCALE)``): half the memory
+#: of float32, absolute error <= 7.6e-6 per weight.
+WEIGHT_SCALE = 65535.0
+
+#: Smallest weight of the input colour y in Eq. 13 (failure guard, used even
+#: with ``Params.input_weight = 0``): a pixel that every model ignores keeps
+#: its input value instead of 0 / 0.
+FALLBACK_WEIGHT = 1e-12
+
+#: Added to every model weight in the Eq. 13 sums (and the Var_t maps), so a
+#: window pixel weighted 0 still contributes a defined average.
+MODEL_WEIGHT_FLOOR = 1e-12
 
 
 @dataclass
@@ -156,6 +202,7 @@ def iteration_weights(T: int) -> np.ndarray:
     return 1.0 - 1.0 / (t + 1.0) ** 2
 
 
+
 # ------------------------------------------------------------------ input fixes
 def _fill_missing(values: np.ndarray, missing: np.ndarray) -> np.ndarray:
     """Replace ``values[missing]`` ((H, W, C), mask (H, W)) by the mean of the
@@ -235,6 +282,90 @@ def _normalise_depth(depth: np.ndarray, var: np.ndarray):
     return np.clip(depth / scale, -4.0, 4.0), var / (scale * scale)
 
 
+def prepare_color(color, color_var, n=None, zero_var=None):
+    """Input colour, its variance and the missing-pixel mask, made usable.
+
+    color : (H, W, 3) pixel means y (a single channel is broadcast to RGB);
+        NaN / +-Inf or n <= 0 mark a *missing* pixel, filled from its
+        neighbours (``_fill_missing``) for the guides and the distances.
+    color_var : (H, W, 3) variance of the means (+inf unknown) or a
+        zero-argument callable returning it (called here, so the caller can
+        hand over the only reference); unknown entries are filled
+        (``_fill_variance``).
+    n : (H, W) samples per pixel, default 1.
+    zero_var : optional (H, W, 3) bool noise-free channels; default
+        ``color_var == 0`` at non-missing pixels.
+
+    Returns
+    -------
+    y_in (H, W, 3) the input as given (float64), y (H, W, 3) finite filled
+    colour, var (H, W, 3) filled variance of the mean, n (H, W) finite sample
+    counts, bad (H, W) missing mask, zero_var (H, W, 3), and the fraction of
+    pixels whose variance was filled (float).
+    """
+    y_in = np.asarray(color, np.float64)
+    if y_in.ndim == 2:
+        y_in = y_in[..., None]
+    h, w = y_in.shape[:2]
+    if y_in.shape[2] != 3:
+        y_in = np.broadcast_to(y_in[..., :1], (h, w, 3))
+    if callable(color_var):
+        color_var = color_var()
+    cvar = np.broadcast_to(np.asarray(color_var, np.float64).reshape(h, w, -1), (h, w, 3))
+    del color_var
+    nn = np.ones((h, w)) if n is None else np.asarray(n, np.float64).reshape(h, w)
+    nn = np.where(np.isfinite(nn), nn, 0.0)
+    bad = ~np.isfinite(y_in).all(-1) | (nn <= 0)
+    y = np.clip(np.where(np.isfinite(y_in), y_in, 0.0), -VALUE_LIMIT, VALUE_LIMIT)
+    y = _fill_missing(y, bad)
+    if zero_var is None:
+        zero_var = np.isfinite(cvar) & (cvar == 0) & ~bad[..., None]
+    vy, vy_filled = _fill_variance(cvar, nn, y, bad)
+    return y_in, y, vy, nn, bad, zero_var, float(vy_filled.mean())
+
+
+def prepare_features(feats, feat_var, n: np.ndarray, bad: np.ndarray):
+    """The 7 feature channels of ``FEATURE_ORDER`` (normal xyz, albedo rgb,
+    depth) and the variances of their means, as the NL-means input.
+
+    feats : dict 'normal' (H, W, 3), 'albedo' (H, W, 3), 'depth' (H, W[, 1]);
+        a missing pass is a constant 0 feature (variance 0).
+    feat_var : dict of their variances (missing entries: 0, noise-free); a
+        value may be a zero-argument callable, evaluated when that feature is
+        prepared (bounds peak memory).
+    n, bad : (H, W) sample counts and missing-pixel mask (``prepare_color``).
+
+    Non-finite feature values are filled from their neighbours, magnitudes
+    clipped to ``FEATURE_LIMIT``, variances filled like the colour's and depth
+    normalised (``_normalise_depth``).  Returns (F, V), both (H, W, 7) float32.
+    """
+    h, w = n.shape
+    F7 = np.empty((h, w, 7), np.float32)
+    V7 = np.empty((h, w, 7), np.float32)
+    c0 = 0
+    for name, c in FEATURE_ORDER:
+        f = feats.get(name) if feats else None
+        if f is None:
+            f = np.zeros((h, w, c))
+            fv = np.zeros((h, w, c))
+        else:
+            f = np.asarray(f, np.float64).reshape(h, w, -1)[..., :c]
+            fv = (feat_var or {}).get(name)
+            fv = fv() if callable(fv) else fv
+            fv = np.zeros_like(f) if fv is None else np.broadcast_to(
+                np.asarray(fv, np.float64).reshape(h, w, -1)[..., :c], f.shape)
+        fbad = ~np.isfinite(f).all(-1)
+        f = _fill_missing(np.clip(np.where(np.isfinite(f), f, 0.0), -FEATURE_LIMIT,
+                                  FEATURE_LIMIT), fbad)
+        fv, _ = _fill_variance(fv, n, f, fbad | bad)
+        if name == "depth":
+            f, fv = _normalise_depth(f, fv)
+        F7[..., c0:c0 + c] = f
+        V7[..., c0:c0 + c] = np.minimum(fv, FEATURE_LIMIT ** 2)
+        c0 += c
+    return F7, V7
+
+
 # ------------------------------------------------------------------- prefiltering
 def _guided_rows(p, guide, radius, eps, rows=256):
     """``guided_filter`` in row strips with a 2r halo (exact; bounds memory)."""
@@ -265,9 +396,9 @@ def prefilter_features(feats: np.ndarray, feat_var: np.ndarray, params: Params) 
     Choice: the search window of the NL-means has radius ``feature_radius`` =
     4 = 2 sigma_s (the paper gives none; the spatial weight beyond it is below
     e^-2); the guided filter radius ``guided_radius`` = 1 (not given either:
-    the filter's support is 2r + 2r + 1 = 5 pixels, and on our synthetic scenes
-    r = 1 gave lower error than r = 2 because it blurs colour-only edges of M
-    less).  The NL-means runs in float32 (features are O(1)).
+    the filter's support is 2r + 2r + 1 = 5 pixels; a smaller radius blurs the
+    colour-only edges of M less).  The NL-means runs in float32 (features are
+    O(1)).
     """
     sig = np.array([params.sigma_normal] * 3 + [params.sigma_albedo] * 3 + [params.sigma_depth])
     f = nlm_filter(feats, feat_var, params.feature_k, params.feature_radius, params.patch_radius,
@@ -345,6 +476,21 @@ def feature_gradient(fhat: np.ndarray) -> np.ndarray:
     return sobel_gradient(fhat, reduce_max=True)
 
 
+def colour_guide(y: np.ndarray, var: np.ndarray, fhat: np.ndarray, params: Params):
+    """Colour guide M of Eq. 8 (``prefilter_color``) and its variance
+    (``guide_variance``), the inputs of the regression weights
+    ``NLM(M, k, false)`` (Sec. 3.3) and the first pilot y_0 of Eq. 11.
+
+    y, var : (H, W, 3) filled colour and variance of its mean; fhat : (H, W, 7)
+    prefiltered features.  Returns (M, Var(M)), both (H, W, 3) float32 (they
+    only feed the NL-means weights and the pilot; variances capped at 1e30, the
+    float32 NL-means limit).
+    """
+    M = prefilter_color(y, fhat, params).astype(np.float32)
+    vM = np.minimum(guide_variance(var, params.guided_radius), 1e30).astype(np.float32)
+    return M, vM
+
+
 # ------------------------------------------------------------------ centre choice
 def select_centers(gra: np.ndarray, params: Params):
     """Model centres and window radii (Sec. 3.5 of Liu et al. 2018).
@@ -418,6 +564,148 @@ def select_centers(gra: np.ndarray, params: Params):
     cr = np.concatenate(cr).astype(np.int64)
     return cy, cx, cr, detailed
 
+def _window_index(cy, cx, r, h, w):
+    """Flat pixel indices (c, (2r+1)^2) of the windows of centres (clipped) and
+    the mask of window pixels inside the image."""
+    oy, ox = window_offsets(r)
+    qy = cy[:, None] + oy[None, :]
+    qx = cx[:, None] + ox[None, :]
+    inside = (qy >= 0) & (qy < h) & (qx >= 0) & (qx < w)
+    return np.clip(qy, 0, h - 1) * w + np.clip(qx, 0, w - 1), inside
+
+
+def _fill_centers(uncovered: np.ndarray, rm: int):
+    """One r_m model per cell of side 2 r_m + 1 that holds uncovered pixels,
+    centred on the uncovered pixel nearest the centroid of the cell's
+    uncovered pixels (a vectorised form of the paper's pixel scan).
+    uncovered (H, W) bool -> (cy, cx) int64 arrays."""
+    h, w = uncovered.shape
+    s = 2 * rm + 1
+    my, mx = -(-h // s), -(-w // s)
+    u = np.zeros((my * s, mx * s), bool)
+    u[:h, :w] = uncovered
+    cells = u.reshape(my, s, mx, s).transpose(0, 2, 1, 3).reshape(my, mx, s * s)
+    cnt = cells.sum(-1)
+    ly, lx = np.divmod(np.arange(s * s), s)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        my_c = (cells * ly).sum(-1) / np.maximum(cnt, 1)
+        mx_c = (cells * lx).sum(-1) / np.maximum(cnt, 1)
+    dist = (ly[None, None] - my_c[..., None]) ** 2 + (lx[None, None] - mx_c[..., None]) ** 2
+    dist = np.where(cells, dist, np.inf)
+    best = dist.argmin(-1)
+    has = cnt > 0
+    gy = np.arange(my)[:, None] * s + ly[best]
+    gx = np.arange(mx)[None, :] * s + lx[best]
+    return gy[has].astype(np.int64), gx[has].astype(np.int64)
+
+
+
+# ------------------------------------------------------------ regression weights
+class ModelChunk(NamedTuple):
+    """Models regressed together: window radius, model ids (c,) into the
+    centre arrays, and their regression weights (c, K, (2r+1)^2) as uint16
+    fixed point (``WEIGHT_SCALE``)."""
+
+    radius: int
+    ids: np.ndarray
+    weights: np.ndarray
+
+
+class ModelSet(NamedTuple):
+    """All models of an image (``place_models``): centres cy, cx and radii cr
+    (N,) int64, their weight chunks, the number of r_m fill models and the
+    fraction of pixels still uncovered after the fill rounds."""
+
+    cy: np.ndarray
+    cx: np.ndarray
+    cr: np.ndarray
+    chunks: list
+    fill_models: int
+    uncovered_fraction: float
+
+
+def regression_weights(M, vM, cy, cx, radius: int, ks, params: Params) -> np.ndarray:
+    """Regression weights ``w(i, j) = NLM(M, k, false)`` (Sec. 3.3, Eq. 3-5
+    with UF = false) between centres i and every pixel j of their window,
+    for every candidate k.
+
+    M, vM : (H, W, 3) colour guide and its variance; cy, cx : (c,) centres;
+    ks : (K,) candidates.  Returns (c, K, (2 radius + 1)^2) float32 in [0, 1]
+    (``window_offsets`` order, 0 outside the image, 1 at the centre).
+
+    Choice: no spatial term by default (``regression_sigma_s = 0``): with
+    sigma_s = 2 a radius-15 window would be fitted from ~5 pixels and
+    extrapolated to the rest; the window bounds the support.
+    """
+    wk = nlm_center_weights(M, vM, cy, cx, radius, params.patch_radius, ks,
+                            sigma_r=params.sigma_r, sigma_s=params.regression_sigma_s,
+                            eps=params.nlm_eps, dtype=np.float32)
+    return wk.astype(np.float32)
+
+
+def weight_chunks(M, vM, cy, cx, cr, ids_all, ks, params: Params, cover: np.ndarray) -> list:
+    """Regression weights of the models ``ids_all``, grouped into chunks.
+
+    Models are sorted by (radius, row, column); weights are computed for
+    ``Params.chunk_centers`` centres at a time, and each chunk regressed later
+    holds at most ``CHUNK_PIXELS`` window pixels.  ``cover`` (H W,) is updated
+    in place to the best weight at the smallest k of any model for each pixel
+    (the coverage test of Sec. 3.5; weights grow with k).
+
+    Returns a list of ``ModelChunk``.
+    """
+    h, w = M.shape[:2]
+    chunk = max(1, int(params.chunk_centers))
+    out = []
+    order = ids_all[np.lexsort((cx[ids_all], cy[ids_all], cr[ids_all]))]
+    for r in np.unique(cr[order]):
+        ids_r = order[cr[order] == r]
+        step = max(1, CHUNK_PIXELS // (2 * int(r) + 1) ** 2)
+        for s0 in range(0, ids_r.size, chunk):
+            ids = ids_r[s0:s0 + chunk]
+            wk = regression_weights(M, vM, cy[ids], cx[ids], int(r), ks, params)
+            idx, inside = _window_index(cy[ids], cx[ids], int(r), h, w)
+            np.maximum.at(cover, idx[inside], wk[:, 0][inside])
+            # kept for all T iterations: 16-bit fixed point (weights are
+            # in [0, 1]; step 1.5e-5, the centre's 1 stays exactly 1)
+            wq = np.rint(wk * WEIGHT_SCALE).astype(np.uint16)
+            del wk
+            for a in range(0, ids.size, step):
+                out.append(ModelChunk(int(r), ids[a:a + step], wq[a:a + step]))
+    return out
+
+
+def place_models(M, vM, cy, cx, cr, ks, params: Params) -> ModelSet:
+    """The models of Sec. 3.5: the patch models of ``select_centers`` plus
+    rounds of r_m models for pixels "not covered by any existing window".
+
+    Choice: a window pixel whose weight is ~0 in its model is extrapolated,
+    not fitted, so a pixel counts as covered when some model weights it >=
+    ``coverage_weight`` at the smallest k; uncovered pixels get r_m models
+    (``_fill_centers``) for up to ``fill_rounds`` rounds.
+
+    M, vM : (H, W, 3) colour guide and its variance; cy, cx, cr : (N0,) the
+    patch models; ks : (K,) candidates.  Returns a ``ModelSet``.
+    """
+    h, w = M.shape[:2]
+    cover = np.zeros(h * w)
+    chunks = weight_chunks(M, vM, cy, cx, cr, np.arange(cy.size), ks, params, cover)
+    rm = sorted((params.radius_small, params.radius_medium, params.radius_large))[1]
+    fill_models = 0
+    for _ in range(int(params.fill_rounds)):
+        unc = (cover < params.coverage_weight).reshape(h, w)
+        if not unc.any():
+            break
+        ny_, nx_ = _fill_centers(unc, int(rm))
+        first = cy.size
+        cy = np.concatenate([cy, ny_])
+        cx = np.concatenate([cx, nx_])
+        cr = np.concatenate([cr, np.full(ny_.size, int(rm), np.int64)])
+        fill_models += ny_.size
+        chunks += weight_chunks(M, vM, cy, cx, cr, np.arange(first, cy.size), ks, params, cover)
+    uncovered = float((cover < params.coverage_weight).mean())
+    return ModelSet(cy, cx, cr, chunks, int(fill_models), uncovered)
+
 
 # ---------------------------------------------------------------- hat matrix core
 def regularizer(weight_sum: np.ndarray, P: int, ridge: float) -> np.ndarray:
@@ -447,7 +735,7 @@ def hat_bias_variance(X, w, Y, y_prev, var_prev, ridge: float = 1e-3, pilot_var=
     computed without forming the n x n matrix H: Var(j) = x_j^T A^-1 B A^-1 x_j
     with A = X^T W X + Lambda and B = X^T W diag(Var) W X.  The products run
     one weighting k at a time, so the temporaries are (B, n, P), not
-    (B, n, K P) (bounds the peak memory of ``rhf_reconstruct``).
+    (B, n, K P) (bounds the peak memory of the regression).
 
     Parameters
     ----------
@@ -468,7 +756,7 @@ def hat_bias_variance(X, w, Y, y_prev, var_prev, ridge: float = 1e-3, pilot_var=
         and reused.
     lean : if True, return ``beta`` (B, K, P, C), the coefficients of the fit
         of Y (pred = X @ beta[:, k]), instead of pred, and the channel mean of
-        bias^2 (B, K, n) instead of bias (what ``rhf_reconstruct`` needs).
+        bias^2 (B, K, n) instead of bias (what ``window_error_terms`` needs).
 
     Returns
     -------
@@ -635,60 +923,6 @@ def _design_rows(feat, idx, inside, cidx, width):
     diff = np.where(s > 1e-12, diff / np.where(s > 1e-12, s, 1.0), 0.0)
     return np.concatenate([np.ones((c, n, 1)), diff], axis=2)
 
-
-#: Most window pixels (centres x (2r+1)^2) regressed together: the per-chunk
-#: temporaries of ``rhf_reconstruct`` (design rows, weights, the per-k
-#: products of ``hat_bias_variance``) take ~0.5 kB per window pixel, so this
-#: bounds them to ~4 MB whatever the window radius.
-CHUNK_PIXELS = 1 << 13
-
-#: Regression weights of every model are kept over the T iterations as
-#: 16-bit fixed point in [0, 1] (``round(w * WEIGHT_SCALE)``): half the memory
-#: of float32 (they were ~107 of ~365 bytes per pixel on a textured scene),
-#: absolute error <= 7.6e-6 per weight, output changes ~1e-6 relative.
-WEIGHT_SCALE = 65535.0
-
-#: Smallest weight of the input colour y in Eq. 13 (failure guard, used even
-#: with ``Params.input_weight = 0``): a pixel that every model ignores keeps
-#: its input value instead of 0 / 0.
-FALLBACK_WEIGHT = 1e-12
-
-
-def _window_index(cy, cx, r, h, w):
-    """Flat pixel indices (c, (2r+1)^2) of the windows of centres (clipped) and
-    the mask of window pixels inside the image."""
-    oy, ox = window_offsets(r)
-    qy = cy[:, None] + oy[None, :]
-    qx = cx[:, None] + ox[None, :]
-    inside = (qy >= 0) & (qy < h) & (qx >= 0) & (qx < w)
-    return np.clip(qy, 0, h - 1) * w + np.clip(qx, 0, w - 1), inside
-
-
-def _fill_centers(uncovered: np.ndarray, rm: int):
-    """One r_m model per cell of side 2 r_m + 1 that holds uncovered pixels,
-    centred on the uncovered pixel nearest the centroid of the cell's
-    uncovered pixels (a vectorised form of the paper's pixel scan).
-    uncovered (H, W) bool -> (cy, cx) int64 arrays."""
-    h, w = uncovered.shape
-    s = 2 * rm + 1
-    my, mx = -(-h // s), -(-w // s)
-    u = np.zeros((my * s, mx * s), bool)
-    u[:h, :w] = uncovered
-    cells = u.reshape(my, s, mx, s).transpose(0, 2, 1, 3).reshape(my, mx, s * s)
-    cnt = cells.sum(-1)
-    ly, lx = np.divmod(np.arange(s * s), s)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        my_c = (cells * ly).sum(-1) / np.maximum(cnt, 1)
-        mx_c = (cells * lx).sum(-1) / np.maximum(cnt, 1)
-    dist = (ly[None, None] - my_c[..., None]) ** 2 + (lx[None, None] - mx_c[..., None]) ** 2
-    dist = np.where(cells, dist, np.inf)
-    best = dist.argmin(-1)
-    has = cnt > 0
-    gy = np.arange(my)[:, None] * s + ly[best]
-    gx = np.arange(mx)[None, :] * s + lx[best]
-    return gy[has].astype(np.int64), gx[has].astype(np.int64)
-
-
 def _channel_mean_sq(x: np.ndarray) -> np.ndarray:
     """mean over the last axis of x^2 (few channels: explicit sum, faster)."""
     acc = x[..., 0] * x[..., 0]
@@ -700,6 +934,336 @@ def _channel_mean_sq(x: np.ndarray) -> np.ndarray:
 def _bincount_add(acc, flat, vals, lo, hi):
     """acc[flat] += vals (duplicates summed), within the index range [lo, hi)."""
     acc[lo:hi] += np.bincount(flat - lo, weights=vals, minlength=hi - lo)
+
+
+
+@dataclass
+class RegressionData:
+    """Per-image inputs shared by every model chunk of the regression.
+
+    fhat : (H, W, 7) float32 prefiltered features (design rows, Eq. 2).
+    target : (H W, 3) regression target Y (input colours, or M with
+        ``regress_guide``).
+    y : (H, W, 3) filled input colour (the input term of Eq. 13).
+    valid : (H W,) bool, pixels that enter the fits (not missing).
+    var0 : (H W,) Var_0 of Eq. 11, the channel mean of the variance of the mean.
+    guide_var : (H W,) channel mean of Var(M), the pilot noise of y_0, or None
+        (no ``bias_noise_correction``).
+    cy, cx : (N,) model centres.
+    weis : (T,) Eq. 12 iteration weights.
+    ridge : ``Params.ridge``; input_weight : Eq. 13 weight of the input
+        (``Params.input_weight``, at least ``FALLBACK_WEIGHT``).
+    """
+
+    fhat: np.ndarray
+    target: np.ndarray
+    y: np.ndarray
+    valid: np.ndarray
+    var0: np.ndarray
+    guide_var: np.ndarray | None
+    cy: np.ndarray
+    cx: np.ndarray
+    weis: np.ndarray
+    ridge: float
+    input_weight: float
+
+
+@dataclass
+class WindowSums:
+    """Eq. 13 sums over the models of one iteration, (H W,) per pixel:
+    img_num (H W, 3) sum_i w(i, j) y_ij and den sum_i w(i, j); in the last
+    iteration err_num, the same average of the Eq. 12 error; otherwise v_num,
+    v_den (H W, K) float32, the per-k variance maps Var_t(s, k) of Eq. 11."""
+
+    img_num: np.ndarray
+    den: np.ndarray
+    err_num: np.ndarray | None = None
+    v_num: np.ndarray | None = None
+    v_den: np.ndarray | None = None
+
+    @classmethod
+    def zeros(cls, npx: int, K: int, last: bool) -> "WindowSums":
+        if last:
+            return cls(np.zeros((npx, 3)), np.zeros(npx), err_num=np.zeros(npx))
+        return cls(np.zeros((npx, 3)), np.zeros(npx), v_num=np.zeros((npx, K), np.float32),
+                   v_den=np.zeros((npx, K), np.float32))
+
+
+def window_inputs(data: RegressionData, chunk: ModelChunk):
+    """Eq. 2 inputs of a chunk of c models with n = (2r+1)^2 window pixels.
+
+    Returns idx, inside (c, n) flat window pixel indices and in-image mask,
+    X (c, n, 10) design rows (``_design_rows``), wk (c, K, n) float64
+    regression weights w(i, j), wfit (c, K, n) the weights of the fit (0 at
+    missing and outside pixels) and Yq (c, n, 3) the target.
+    """
+    h, w = data.fhat.shape[:2]
+    r, ids, wq = chunk
+    idx, inside = _window_index(data.cy[ids], data.cx[ids], r, h, w)
+    cidx = data.cy[ids] * w + data.cx[ids]
+    wk = wq * (1.0 / WEIGHT_SCALE)                              # (c, K, n) float64
+    X = _design_rows(data.fhat, idx, inside, cidx, w)           # (c, n, 10)
+    wfit = wk * (data.valid[idx] & inside)[:, None, :]
+    Yq = data.target[idx]                                       # (c, n, 3)
+    return idx, inside, X, wk, wfit, Yq
+
+
+def gather_pilot(pilot, idx, var0, guide_var, kk=None):
+    """The pilot (y_{t-1}, Var_{t-1}) of Eq. 11 on a chunk's windows.
+
+    pilot : (y (H, W, 3), Var (H, W, K) float32 or None = Var_0, t = 1).
+    idx : (c, n) window pixels; var0, guide_var : as in ``RegressionData``.
+    kk : optional (c,) chosen candidate per model; Var_{t-1} is then taken
+        at kk only.
+
+    Returns Pq (c, n, 3) y_{t-1}; vq (c, n), (c, K, n) or, with kk, (c, n)
+    Var_{t-1}; uq the variance of y_{t-1} for ``bias_noise_correction``
+    (Var(M) at t = 1, Var_{t-1} after) or None when it is off.
+    """
+    y_p, v_p = pilot
+    npx = var0.size
+    if v_p is None:
+        vq = var0[idx]                                          # (c, n)
+    elif kk is None:
+        vq = np.moveaxis(v_p.reshape(npx, v_p.shape[-1])[idx], 2, 1).astype(np.float64)
+    else:
+        vq = v_p.reshape(npx, v_p.shape[-1])[idx, kk[:, None]].astype(np.float64)
+    Pq = y_p.reshape(npx, 3)[idx]
+    uq = None
+    if guide_var is not None:
+        uq = guide_var[idx] if v_p is None else vq
+    return Pq, vq, uq
+
+
+def window_error_terms(X, wfit, Yq, Pq, vq, uq, ridge: float, cache: dict):
+    """Per-window regression and its error terms for one iteration t.
+
+    Eq. 2 fit of Y with the hat matrix H (``hat_bias_variance``), Eq. 11
+    bias_t^2 + Var_t per window pixel (err_t, the term of Eq. 12) and the
+    Eq. 9-10 block error (``block_error``) per candidate k.  With ``uq``
+    (``bias_noise_correction``) the pilot's noise is subtracted from bias^2,
+    at block level before clamping (per-pixel clamping would keep the
+    noise's positive part).
+
+    X (c, n, P), wfit (c, K, n), Yq, Pq (c, n, 3), vq (c, n) or (c, K, n),
+    uq like vq or None; cache : dict holding or receiving (X^T W X +
+    Lambda)^-1 ("Ainv", (c, K, P, P)).
+
+    Returns beta (c, K, P, 3) coefficients of the fit (prediction X @ beta),
+    err_t (c, K, n), block errors (c, K) and Var_t (c, K, n); err_t and the
+    block errors are finite, <= VAR_LIMIT.
+    """
+    if uq is not None:
+        beta, b2, var, noise = hat_bias_variance(X, wfit, Yq, Pq, vq, ridge, pilot_var=uq,
+                                                 cache=cache, lean=True)
+        err_t = np.maximum(b2 - noise, 0.0) + var
+        blk = np.maximum(block_error(wfit, b2 - noise), 0.0) + block_error(wfit, var)
+    else:
+        beta, b2, var = hat_bias_variance(X, wfit, Yq, Pq, vq, ridge, cache=cache, lean=True)
+        err_t = b2 + var                                        # (c, K, n)
+        blk = None
+    err_t = np.where(np.isfinite(err_t), np.minimum(err_t, VAR_LIMIT), VAR_LIMIT)
+    if blk is None:
+        blk = block_error(wfit, err_t)                          # Eq. 9-10
+    blk = np.where(np.isfinite(blk), np.minimum(blk, VAR_LIMIT), VAR_LIMIT)
+    return beta, err_t, blk, var
+
+
+def predict_at_bandwidth(wk, X, beta, kk):
+    """Each model's prediction and Eq. 13 weight at its chosen k_opt (Eq. 10).
+
+    wk (c, K, n) regression weights, X (c, n, P), beta (c, K, P, 3), kk (c,)
+    indices of k_opt (``choose_bandwidth``).  Returns the Eq. 13 weights
+    w(i, j) + ``MODEL_WEIGHT_FLOOR`` (c, n) and the predictions y_ij (c, n, 3).
+    """
+    ar = np.arange(kk.size)
+    wm = wk[ar, kk] + MODEL_WEIGHT_FLOOR
+    yk = X @ beta[ar, kk]
+    return wm, yk
+
+
+def error_at_bandwidth(X, wfit, Yq, idx, pilots, Ainv, kk, err_t, data: RegressionData):
+    """Eq. 12 error at k_opt, sum_t wei_t (bias_t^2 + Var_t) / sum_t wei_t,
+    per window pixel, in the last iteration t = T.
+
+    The terms of the earlier iterations are recomputed for k_opt only from
+    the kept pilots (``pilots``, T entries) and the same (X^T W X +
+    Lambda)^-1 (``Ainv`` (c, K, P, P)) instead of keeping every model's
+    (K, n) errors.  X, wfit, Yq, idx as in ``window_inputs``; kk (c,);
+    err_t (c, K, n) the last iteration's term.  Returns (c, n).
+    """
+    t = len(pilots) - 1
+    weis = data.weis
+    ar = np.arange(kk.size)
+    ek = np.zeros((kk.size, X.shape[1]))
+    if t > 0:
+        sub = {"Ainv": Ainv[ar, kk][:, None]}
+        wsub = wfit[ar, kk][:, None]
+        for t2 in range(t):
+            Pq, vq, uq = gather_pilot(pilots[t2], idx, data.var0, data.guide_var, kk)
+            e2 = window_error_terms(X, wsub, Yq, Pq, vq, uq, data.ridge, sub)[1]
+            ek += weis[t2] * e2[:, 0]
+    ek += weis[t] * err_t[ar, kk]
+    ek /= weis.sum()
+    return ek
+
+
+def accumulate_predictions(img_num, den, flat, wsel, yk, inside, lo: int, hi: int) -> None:
+    """Add a chunk's window predictions to the Eq. 13 sums, in place:
+    ``img_num[j] += w(i, j) y_ij`` and ``den[j] += w(i, j)`` over its models.
+
+    img_num (H W, 3), den (H W,); flat (m,) pixel indices of the in-image
+    window pixels, wsel (m,) their weights; yk (c, n, 3) predictions and
+    inside (c, n) the mask that selects the m entries; [lo, hi) bounds flat.
+    """
+    for ch in range(3):
+        _bincount_add(img_num[:, ch], flat, wsel * yk[..., ch][inside], lo, hi)
+    _bincount_add(den, flat, wsel, lo, hi)
+
+
+def accumulate_variances(v_num, v_den, flat, wk, var, inside, lo: int, hi: int) -> None:
+    """Add a chunk's Var_t(j, k) (Eq. 11) to the per-k variance maps with the
+    Eq. 13 weights of every candidate, in place (the Var_{t-1}(s, k) of the
+    next iteration is v_num / v_den).
+
+    v_num, v_den (H W, K) float32; wk, var (c, K, n); flat, inside, lo, hi as
+    in ``accumulate_predictions``.  Variances are capped at 1e30 (float32).
+    """
+    wv = wk + MODEL_WEIGHT_FLOOR
+    for kq in range(wk.shape[1]):
+        wsk = wv[:, kq][inside]
+        _bincount_add(v_num[:, kq], flat, wsk * np.minimum(var[:, kq][inside], 1e30), lo, hi)
+        _bincount_add(v_den[:, kq], flat, wsk, lo, hi)
+
+
+def combine_models(img_num, den, y, input_weight: float):
+    """Eq. 13, ``out_j = sum_i w(i, j) y_ij / sum_i w(i, j)``, with the pixel's
+    own input y_j added at weight ``input_weight`` (at least
+    ``FALLBACK_WEIGHT``, so pixels every model ignores keep their input).
+
+    Choice (not in the paper): the models are sparse, so most pixels are
+    predicted far from a centre; a pixel every covering model weights weakly
+    would otherwise trust their extrapolations fully.  At 0.02, pixels some
+    model weights >= 0.2 move < 10 % toward their input.
+
+    img_num (H W, 3), den (H W,) sums of ``accumulate_predictions``, both
+    overwritten (in place: no full-size temporaries); y (H, W, 3).  Returns
+    out (H, W, 3) (a view of img_num) and the normaliser den + input_weight
+    (H W,) (den itself).
+    """
+    dd = np.add(den, input_weight, out=den)
+    for ch in range(3):
+        img_num[:, ch] += input_weight * y[..., ch].ravel()
+        img_num[:, ch] /= dd
+    return img_num.reshape(y.shape), dd
+
+
+def regress_chunk(data: RegressionData, chunk: ModelChunk, pilots, Ainv, Ecum, k_idx,
+                  sums: WindowSums, last: bool):
+    """One chunk of models in iteration t = len(pilots): Eq. 2 fit, Eq. 11
+    terms against ``pilots[-1]``, Eq. 12 accumulation into ``Ecum`` (N, K),
+    Eq. 10 choice into ``k_idx`` (N,), and the Eq. 13 sums into ``sums``
+    (all in place).  ``Ainv`` : the chunk's (X^T W X + Lambda)^-1 from an
+    earlier iteration or None.  Returns Ainv to keep for the next iteration
+    (None in the last).
+    """
+    t = len(pilots) - 1
+    idx, inside, X, wk, wfit, Yq = window_inputs(data, chunk)
+    cache = {} if Ainv is None else {"Ainv": Ainv}
+    Pq, vq, uq = gather_pilot(pilots[t], idx, data.var0, data.guide_var)
+    beta, err_t, blk, var = window_error_terms(X, wfit, Yq, Pq, vq, uq, data.ridge, cache)
+    del Pq, vq, uq
+    ids = chunk.ids
+    Ecum[ids] += data.weis[t] * blk                             # Eq. 12
+    kk = choose_bandwidth(Ecum[ids])                            # Eq. 10
+    k_idx[ids] = kk
+    wm, yk = predict_at_bandwidth(wk, X, beta, kk)
+    flat = idx[inside]
+    lo, hi = int(flat.min()), int(flat.max()) + 1
+    wsel = wm[inside]
+    accumulate_predictions(sums.img_num, sums.den, flat, wsel, yk, inside, lo, hi)
+    if last:
+        ek = error_at_bandwidth(X, wfit, Yq, idx, pilots, cache["Ainv"], kk, err_t, data)
+        _bincount_add(sums.err_num, flat, wsel * ek[inside], lo, hi)
+        return None
+    accumulate_variances(sums.v_num, sums.v_den, flat, wk, var, inside, lo, hi)
+    return cache["Ainv"]
+
+
+def regression_pass(data: RegressionData, chunks: list, pilots: list, a_cache: list, Ecum,
+                    k_idx, last: bool):
+    """Iteration t = len(pilots) of Eq. 11-13 over every model chunk.
+
+    pilots : the (y_{s-1}, Var_{s-1}) of iterations s = 1..t (``gather_pilot``);
+    a_cache : per chunk (X^T W X + Lambda)^-1 or None, updated in place;
+    Ecum (N, K) and k_idx (N,) updated in place (``regress_chunk``).
+
+    Returns the Eq. 13 image (H, W, 3) and, in the last iteration, the error
+    map (H W,) (Eq. 12 at k_opt, merged with the Eq. 13 weights, the input's
+    Var_0 at the input weight), otherwise the per-k variance maps Var_t
+    (H, W, K) float32 (v_num / v_den where v_den > 0, else 0).
+    """
+    h, w = data.fhat.shape[:2]
+    K = Ecum.shape[1]
+    sums = WindowSums.zeros(h * w, K, last)
+    for gi, chunk in enumerate(chunks):
+        a_cache[gi] = regress_chunk(data, chunk, pilots, a_cache[gi], Ecum, k_idx, sums, last)
+    img, dd = combine_models(sums.img_num, sums.den, data.y, data.input_weight)
+    if last:
+        return img, (sums.err_num + data.input_weight * data.var0) / dd
+    np.divide(sums.v_num, sums.v_den, out=sums.v_num, where=sums.v_den > 0)
+    return img, sums.v_num.reshape(h, w, K)
+
+
+def fit_models(data: RegressionData, chunks: list, guide: np.ndarray, K: int):
+    """The T iterations of the bandwidth selection (Eq. 11-12, T =
+    ``data.weis.size``), each a ``regression_pass``; the first pilot y_0 is
+    the colour guide M with Var_0, the next ones the previous pass's output
+    and variance maps.  Only the error estimate and k_opt are iterated: every
+    pass fits Y.
+
+    Choice: y_{t-1} is the whole Eq. 13 image of the previous pass (each
+    model with the k minimising the Eq. 12 error so far), not the window's
+    own H y, which would make bias_2 = H H y - H y = 0.
+
+    Returns image (H, W, 3), error map (H W,), Ecum (N, K) the
+    wei-weighted sum of the Eq. 10 block errors and k_idx (N,) the chosen
+    candidate per model.
+    """
+    n_models = data.cy.size
+    T = data.weis.size
+    Ecum = np.zeros((n_models, K))
+    k_idx = np.zeros(n_models, np.int64)
+    pilots = [(guide, None)]
+    a_cache = [None] * len(chunks)
+    for t in range(T):
+        last = t == T - 1
+        img, second = regression_pass(data, chunks, pilots, a_cache, Ecum, k_idx, last)
+        if not last:
+            pilots.append((img, second))
+    return img, second, Ecum, k_idx
+
+
+def finalize_output(y_in, img, err_map, zero_var):
+    """Final guards: zero-variance channels return their input unchanged
+    (error 0 there), non-finite values become 0 (image) or VAR_LIMIT
+    (error), magnitudes are clipped.  y_in, img (H, W, 3), err_map (H W,),
+    zero_var (H, W, 3) bool -> image (H, W, 3), error (H, W)."""
+    h, w = img.shape[:2]
+    out = np.where(zero_var, y_in, img)
+    out = np.clip(np.where(np.isfinite(out), out, 0.0), -VALUE_LIMIT, VALUE_LIMIT)
+    err = err_map.reshape(h, w) * (1.0 - zero_var.mean(axis=2))
+    err = np.clip(np.where(np.isfinite(err), err, VAR_LIMIT), 0.0, VAR_LIMIT)
+    return out, err
+
+
+def active_features(fhat: np.ndarray) -> int:
+    """Model dimension d: the 2 pixel coordinates plus the prefiltered feature
+    channels that vary over the image (range > 1e-6), at most D = 9; 0 for an
+    empty image.  (H, W, 7) -> int."""
+    if not fhat.shape[0] * fhat.shape[1]:
+        return 0
+    return 2 + int(sum(np.ptp(fhat[..., c]) > 1e-6 for c in range(fhat.shape[2])))
 
 
 def rhf_reconstruct(color, color_var, feats, feat_var, n=None, params: Params | None = None,
@@ -724,350 +1288,67 @@ def rhf_reconstruct(color, color_var, feats, feat_var, n=None, params: Params | 
 
     Returns
     -------
-    RHFOutput.
-
-    Choices (where the paper is silent or ambiguous)
-    ------------------------------------------------
-    * Regression target: Eq. 2 fits the *input* colours Y ("Y = [y_1..y_n]
-      are the input colors"); the guide colour M (Eq. 8) gives the regression
-      weights ``NLM(M, k, false)`` and the first pilot y_0 of Eq. 11, as Sec.
-      3.3-3.4 state.  (``regress_guide`` fits M instead: on our synthetic
-      scenes that is several times worse, because M's blur at colour-only
-      edges is bias that Eq. 11 cannot see.)
-    * The Eq. 5 distance on M uses the variance of M (``guide_variance``);
-      Var_0 of Eq. 11 is the variance of the input mean, as the paper says.
-    * Regression weights have no spatial term (``regression_sigma_s`` = 0):
-      with sigma_s = 2 a radius-15 window would be fitted from ~5 pixels and
-      extrapolated to the rest.
-    * Eq. 9-10 use the weighted *mean* error of the block (``block_error``);
-      ties between candidates go to the larger k (``choose_bandwidth``).
-    * Iterations (Eq. 11-12): y_{t-1} is the full image reconstructed in
-      iteration t-1 (Eq. 13 over all models, each with the k minimising the
-      Eq. 12 error accumulated so far) and Var_{t-1}(s, k) the per-k variance
-      maps of iteration t-1 merged with the same Eq. 13 weights.  (Using each
-      window's own H y would make bias_2 = H H y - H y = 0.)  The regression
-      itself always fits Y; only the error estimate and k_opt are iterated.
-      Eq. 11 is used as written; ``bias_noise_correction`` (off by default)
-      subtracts the pilot's noise, sum_s (H_js - delta_js)^2 Var(y_s), from
-      the block's bias^2, which the raw estimate counts as bias.
-    * Coverage (Sec. 3.5, "not covered by any existing window"): a window pixel
-      whose weight is ~0 in its model is extrapolated, not fitted.  A pixel
-      therefore counts as covered when some model weights it >=
-      ``coverage_weight`` at the smallest k (weights grow with k, so it keeps
-      that weight at the chosen k); uncovered pixels get r_m models for
-      ``fill_rounds`` rounds (``_fill_centers``).  Pixels still ignored by every
-      model keep their input value in Eq. 13.
-    * Input weight (``input_weight``, 0.02; not in the paper): Eq. 13 also
-      averages in the pixel's own input colour with that weight.  The models
-      are sparse (one per 31 x 31 patch plus r_m fill models), so most pixels
-      are predicted far from a model centre, and a pixel whose features or
-      guide colour differ from the model's data gets a small weight *and* an
-      extrapolated prediction; when every covering model weights it weakly
-      the normalised average still trusts those extrapolations fully (the
-      paper's method as written, ``input_weight = 0``, came out worse than its
-      input on our synthetic test scene: MSE 1.25x).  On the
-      soft_shadows scene (16 spp, uniform) that put 0.42 on contact-shadow
-      pixels whose reference is 0.04 (the input mean said 0.09), and choosing
-      k per model made it worse than either fixed k (relMSE 1.7e-2 for
-      k in {1, 4} against 7.1e-3 / 7.5e-3 for k = 1 / k = 4 alone).  With
-      the input at weight 0.02, pixels any model weights >= 0.2 move < 10 %
-      toward their input.  Measured on the six sample scenes at 16 spp
-      (uniform samples, after the loop's consistency guard; weights 0.001 /
-      0.003 / 0.01 / 0.02 / 0.03 / 0.1): from 0.01 up every scene is below
-      the input's relMSE (0.02: cornell 5.8e-3 vs 3.5e-2, soft_shadows 6.4e-3
-      vs 7.3e-3, animated 8.3e-3 vs 1.0e-2) where 0.001 lost on soft_shadows
-      (1.07e-2) and animated (1.25e-2); above 0.03 cornell and the synthetic
-      tests lose smoothing (MSE ratio to the input 0.12 / 0.17 / 0.21 / 0.26
-      for 0.001 / 0.01 / 0.02 / 0.03).
-    * Design features are pixel position, depth, normal, albedo (D = 9),
-      prefiltered; each column is scaled by its largest |x_j - x_i| in the
-      window and the gradient terms get a small relative ridge
-      (``regularizer``) so constant features and singular systems are safe.
-    * The error map (``RHFOutput.error``) is the Eq. 12 error (bias^2 +
-      variance, RGB mean) at each model's chosen k, averaged with the Eq. 13
-      weights; 0 for zero-variance pixels.
-    * Memory: per model only the float32 weights (K, n) and (X^T W X +
-      Lambda)^-1 (K, P, P) are kept over the T iterations; the Eq. 12 terms
-      of the earlier iterations are recomputed in the last one for k_opt only
-      (from the kept pilots), and models are regressed in chunks of at most
-      ``CHUNK_PIXELS`` window pixels.  Peak traced memory (inputs excluded)
-      measured on synthetic 512x512 scenes: ~280-370 B/px (~380-430 B/px at
-      256x256, where the fixed-size chunk temporaries weigh more).
+    RHFOutput; its error is the Eq. 12 error (bias^2 + variance, RGB mean)
+    at each model's chosen k, averaged with the Eq. 13 weights.
     """
     params = params or Params()
     t0 = time.perf_counter()
     ks = parse_bandwidths(params.bandwidths)
-    K = ks.size
-    T = max(1, int(params.iterations))
-    y_in = np.asarray(color, np.float64)
-    if y_in.ndim == 2:
-        y_in = y_in[..., None]
-    h, w = y_in.shape[:2]
-    if y_in.shape[2] != 3:
-        y_in = np.broadcast_to(y_in[..., :1], (h, w, 3))
-    if callable(color_var):
-        color_var = color_var()
-    cvar = np.broadcast_to(np.asarray(color_var, np.float64).reshape(h, w, -1), (h, w, 3))
-    nn = np.ones((h, w)) if n is None else np.asarray(n, np.float64).reshape(h, w)
-    nn = np.where(np.isfinite(nn), nn, 0.0)
-
-    # ---- missing colour and variance
-    bad = ~np.isfinite(y_in).all(-1) | (nn <= 0)
-    y = np.clip(np.where(np.isfinite(y_in), y_in, 0.0), -VALUE_LIMIT, VALUE_LIMIT)
-    y = _fill_missing(y, bad)
-    if zero_var is None:
-        zero_var = np.isfinite(cvar) & (cvar == 0) & ~bad[..., None]
-    vy, vy_filled = _fill_variance(cvar, nn, y, bad)
-    del cvar, color_var
-    vy_filled = float(vy_filled.mean())
-
-    # ---- features: normal, albedo, depth (7 channels), float32 (NL-means input)
-    F7 = np.empty((h, w, 7), np.float32)
-    V7 = np.empty((h, w, 7), np.float32)
-    c0 = 0
-    for name, c in FEATURE_ORDER:
-        f = feats.get(name) if feats else None
-        if f is None:
-            f = np.zeros((h, w, c))
-            fv = np.zeros((h, w, c))
-        else:
-            f = np.asarray(f, np.float64).reshape(h, w, -1)[..., :c]
-            fv = (feat_var or {}).get(name)
-            fv = fv() if callable(fv) else fv
-            fv = np.zeros_like(f) if fv is None else np.broadcast_to(
-                np.asarray(fv, np.float64).reshape(h, w, -1)[..., :c], f.shape)
-        fbad = ~np.isfinite(f).all(-1)
-        f = _fill_missing(np.clip(np.where(np.isfinite(f), f, 0.0), -FEATURE_LIMIT,
-                                  FEATURE_LIMIT), fbad)
-        fv, _ = _fill_variance(fv, nn, f, fbad | bad)
-        if name == "depth":
-            f, fv = _normalise_depth(f, fv)
-        F7[..., c0:c0 + c] = f
-        V7[..., c0:c0 + c] = np.minimum(fv, FEATURE_LIMIT ** 2)
-        c0 += c
-    del f, fv, nn
+    y_in, y, vy, nn, bad, zero_var, vy_filled = prepare_color(color, color_var, n, zero_var)
+    del color_var
+    F7, V7 = prepare_features(feats, feat_var, nn, bad)
+    del nn
     t_prep = time.perf_counter()
 
-    # ---- Sec. 3.2 / 3.3 prefiltering
-    fhat = prefilter_features(F7, V7, params)
+    fhat = prefilter_features(F7, V7, params)                   # Sec. 3.2, Eq. 3-7
     del F7, V7
     t_feat = time.perf_counter()
-    # stored as float32 (they only feed the NL-means weights and the pilot y_0;
-    # variances capped at 1e30, the float32 NL-means limit)
-    M = prefilter_color(y, fhat, params).astype(np.float32)
-    vM = np.minimum(guide_variance(vy, params.guided_radius), 1e30).astype(np.float32)
-    gra = feature_gradient(fhat)
-    cy, cx, cr, detailed = select_centers(gra, params)
+    M, vM = colour_guide(y, vy, fhat, params)                   # Sec. 3.3, Eq. 8
+    var0 = vy.mean(axis=2).ravel()                              # Var_0 of Eq. 11
+    del vy
+    gra = feature_gradient(fhat)                                # Eq. 14
+    cy, cx, cr, detailed = select_centers(gra, params)          # Sec. 3.5
     t_guide = time.perf_counter()
 
-    # ---- Sec. 3.1 / 3.4 regression with bandwidth selection
     fhat = fhat.astype(np.float32)            # design features (Eq. 2); halves memory
-    target = M if params.regress_guide else y
-    var0 = vy.mean(axis=2)                                       # Var_0: variance of the mean
-    del vy
-    valid = (~bad).ravel()
-    npx = h * w
-    chunk = max(1, int(params.chunk_centers))
-
-    def weights_of(ids, r):
-        wk = nlm_center_weights(M, vM, cy[ids], cx[ids], r, params.patch_radius, ks,
-                                sigma_r=params.sigma_r, sigma_s=params.regression_sigma_s,
-                                eps=params.nlm_eps, dtype=np.float32)
-        return wk.astype(np.float32)
-
-    def add_chunks(ids_all):
-        """Chunks (radius, ids, weights) for new models; updates coverage.
-        Weights are computed for ``chunk_centers`` centres at a time, the
-        regression runs on sub-chunks of at most CHUNK_PIXELS window pixels."""
-        out = []
-        order = ids_all[np.lexsort((cx[ids_all], cy[ids_all], cr[ids_all]))]
-        for r in np.unique(cr[order]):
-            ids_r = order[cr[order] == r]
-            step = max(1, CHUNK_PIXELS // (2 * int(r) + 1) ** 2)
-            for s0 in range(0, ids_r.size, chunk):
-                ids = ids_r[s0:s0 + chunk]
-                wk = weights_of(ids, int(r))
-                idx, inside = _window_index(cy[ids], cx[ids], int(r), h, w)
-                np.maximum.at(cover, idx[inside], wk[:, 0][inside])
-                # kept for all T iterations: 16-bit fixed point (weights are
-                # in [0, 1]; step 1.5e-5, the centre's 1 stays exactly 1)
-                wq = np.rint(wk * WEIGHT_SCALE).astype(np.uint16)
-                del wk
-                for a in range(0, ids.size, step):
-                    out.append((int(r), ids[a:a + step], wq[a:a + step]))
-        return out
-
-    # coverage: best weight at the smallest k (weights grow with k)
-    cover = np.zeros(npx)
-    chunks = add_chunks(np.arange(cy.size))
-    rm = sorted((params.radius_small, params.radius_medium, params.radius_large))[1]
-    fill_models = 0
-    for _ in range(int(params.fill_rounds)):
-        unc = (cover < params.coverage_weight).reshape(h, w)
-        if not unc.any():
-            break
-        ny_, nx_ = _fill_centers(unc, int(rm))
-        first = cy.size
-        cy = np.concatenate([cy, ny_])
-        cx = np.concatenate([cx, nx_])
-        cr = np.concatenate([cr, np.full(ny_.size, int(rm), np.int64)])
-        fill_models += ny_.size
-        chunks += add_chunks(np.arange(first, cy.size))
-    uncovered_frac = float((cover < params.coverage_weight).mean())
-    del cover
-
-    weis = iteration_weights(T)
-    n_models = cy.size
-    Ecum = np.zeros((n_models, K))
-    k_idx = np.zeros(n_models, np.int64)
-    vM_mean = vM.mean(axis=2, dtype=np.float64).ravel() if params.bias_noise_correction else None
-    var0_flat = var0.ravel()
-    target_flat = target.reshape(npx, 3)
-    # pilots (y_{t-1}, Var_{t-1}) of Eq. 11 for t = 0..T-1; Var None = Var_0 (t = 0)
-    pilots = [(M, None)]
-    a_cache = [None] * len(chunks)
-    tiny = 1e-12
-
-    def chunk_terms(X, wfit, Yq, idx, pilot, cache, kk=None):
-        """Eq. 11 terms of a chunk of models against the pilot (y_{t-1},
-        Var_{t-1}): beta (c, K, P, 3) of the fit of Y, err_t = bias^2 + var
-        (c, K, n), the Eq. 9-10 block error (c, K) and var (c, K, n).  With
-        ``kk`` (c,) only that weighting of each model is evaluated (wfit is
-        then (c, 1, n) and Var_{t-1} is taken at kk)."""
-        y_p, v_p = pilot
-        if v_p is None:
-            vq = var0_flat[idx]                                 # (c, n)
-        elif kk is None:
-            vq = np.moveaxis(v_p.reshape(npx, K)[idx], 2, 1).astype(np.float64)
-        else:
-            vq = v_p.reshape(npx, K)[idx, kk[:, None]].astype(np.float64)
-        Pq = y_p.reshape(npx, 3)[idx]
-        if params.bias_noise_correction:
-            uq = vM_mean[idx] if v_p is None else vq
-            beta, b2, var, noise = hat_bias_variance(X, wfit, Yq, Pq, vq, params.ridge,
-                                                     pilot_var=uq, cache=cache, lean=True)
-            err_t = np.maximum(b2 - noise, 0.0) + var
-            # block level: subtract the pilot noise from the block's bias
-            # before clamping (per-pixel clamping keeps noise's positive part)
-            blk = np.maximum(block_error(wfit, b2 - noise), 0.0) + block_error(wfit, var)
-        else:
-            beta, b2, var = hat_bias_variance(X, wfit, Yq, Pq, vq, params.ridge, cache=cache,
-                                              lean=True)
-            err_t = b2 + var                                    # (c, K, n)
-            blk = None
-        err_t = np.where(np.isfinite(err_t), np.minimum(err_t, VAR_LIMIT), VAR_LIMIT)
-        if blk is None:
-            blk = block_error(wfit, err_t)                      # Eq. 9-10
-        blk = np.where(np.isfinite(blk), np.minimum(blk, VAR_LIMIT), VAR_LIMIT)
-        return beta, err_t, blk, var
-
-    for t in range(T):
-        last = t == T - 1
-        img_num = np.zeros((npx, 3))
-        den = np.zeros(npx)
-        if last:
-            err_num = np.zeros(npx)
-        else:
-            v_num = np.zeros((npx, K), np.float32)
-            v_den = np.zeros((npx, K), np.float32)
-        for gi, (r, ids, wq) in enumerate(chunks):
-            idx, inside = _window_index(cy[ids], cx[ids], r, h, w)
-            cidx = cy[ids] * w + cx[ids]
-            wk = wq * (1.0 / WEIGHT_SCALE)                      # (c, K, n) float64
-            X = _design_rows(fhat, idx, inside, cidx, w)        # (c, n, 10)
-            wfit = wk * (valid[idx] & inside)[:, None, :]
-            Yq = target_flat[idx]                               # (c, n, 3)
-            # (X^T W X + Lambda)^-1 of this chunk, reused over the T iterations
-            cache = {} if a_cache[gi] is None else {"Ainv": a_cache[gi]}
-            beta, err_t, blk, var = chunk_terms(X, wfit, Yq, idx, pilots[t], cache)
-            a_cache[gi] = None if last else cache["Ainv"]
-            Ecum[ids] += weis[t] * blk                          # Eq. 12
-            kk = choose_bandwidth(Ecum[ids])
-            k_idx[ids] = kk
-            ar = np.arange(ids.size)
-            wm = wk[ar, kk] + tiny                               # (c, n)  Eq. 13 weights
-            yk = X @ beta[ar, kk]                                # (c, n, 3) prediction at k
-            flat = idx[inside]
-            lo, hi = int(flat.min()), int(flat.max()) + 1
-            wsel = wm[inside]
-            for ch in range(3):
-                _bincount_add(img_num[:, ch], flat, wsel * yk[..., ch][inside], lo, hi)
-            _bincount_add(den, flat, wsel, lo, hi)
-            if last:
-                # Eq. 12 error at the chosen k.  The terms of the earlier
-                # iterations are recomputed for k_opt only (pilots kept, the
-                # same Ainv) instead of keeping every model's (K, n) errors.
-                ek = np.zeros(wm.shape)
-                if t > 0:
-                    sub = {"Ainv": cache["Ainv"][ar, kk][:, None]}
-                    wsub = wfit[ar, kk][:, None]
-                    for t2 in range(t):
-                        e2 = chunk_terms(X, wsub, Yq, idx, pilots[t2], sub, kk)[1]
-                        ek += weis[t2] * e2[:, 0]
-                ek += weis[t] * err_t[ar, kk]
-                ek /= weis.sum()
-                _bincount_add(err_num, flat, wsel * ek[inside], lo, hi)
-            else:
-                wv = wk + tiny
-                for kq in range(K):
-                    wsk = wv[:, kq][inside]
-                    # float32 maps: variances above 1e30 (inputs ~1e15) are capped
-                    _bincount_add(v_num[:, kq], flat,
-                                  wsk * np.minimum(var[:, kq][inside], 1e30), lo, hi)
-                    _bincount_add(v_den[:, kq], flat, wsk, lo, hi)
-                del wv, wsk
-            # free this chunk's temporaries before the next one is built
-            del X, wk, wfit, Yq, cache, beta, err_t, blk, var, wm, yk, flat, wsel
-        # Eq. 13, with the input colour at weight input_weight (at least
-        # FALLBACK_WEIGHT, for pixels that every model ignores)
-        # (in place, one channel at a time: no full-size temporaries)
-        fw = max(float(params.input_weight), FALLBACK_WEIGHT)
-        dd = np.add(den, fw, out=den)
-        for ch in range(3):
-            img_num[:, ch] += fw * y[..., ch].ravel()
-            img_num[:, ch] /= dd
-        img = img_num.reshape(h, w, 3)
-        del img_num
-        if last:
-            err_map = (err_num + fw * var0_flat) / dd
-            del err_num
-        else:
-            # Var_t = v_num / v_den where v_den > 0 (float32, in place)
-            np.divide(v_num, v_den, out=v_num, where=v_den > 0)
-            del v_den
-            v_prev = v_num.reshape(h, w, K)
-            del v_num
-            pilots.append((img, v_prev))
-            del v_prev
-    del chunks, pilots, a_cache
+    models = place_models(M, vM, cy, cx, cr, ks, params)        # Sec. 3.3, 3.5
+    data = RegressionData(
+        fhat=fhat, target=(M if params.regress_guide else y).reshape(-1, 3), y=y,
+        valid=(~bad).ravel(), var0=var0,
+        guide_var=(vM.mean(axis=2, dtype=np.float64).ravel()
+                   if params.bias_noise_correction else None),
+        cy=models.cy, cx=models.cx, weis=iteration_weights(max(1, int(params.iterations))),
+        ridge=params.ridge, input_weight=max(float(params.input_weight), FALLBACK_WEIGHT))
+    del vM
+    img, err_map, Ecum, k_idx = fit_models(data, models.chunks, M, ks.size)  # Eq. 9-13
     t_reg = time.perf_counter()
 
-    # ---- special cases and final guards
-    out = np.where(zero_var, y_in, img)
-    out = np.clip(np.where(np.isfinite(out), out, 0.0), -VALUE_LIMIT, VALUE_LIMIT)
-    err = err_map.reshape(h, w) * (1.0 - zero_var.mean(axis=2))
-    err = np.clip(np.where(np.isfinite(err), err, VAR_LIMIT), 0.0, VAR_LIMIT)
-    active = 2 + int(sum(np.ptp(fhat[..., c]) > 1e-6 for c in range(fhat.shape[2]))) \
-        if npx else 0
-    info = {
+    out, err = finalize_output(y_in, img, err_map, zero_var)
+    info = _diagnostics(models, detailed, ks[k_idx], bad, vy_filled, active_features(fhat),
+                        params)
+    info.update(seconds_prepare=t_prep - t0, seconds_features=t_feat - t_prep,
+                seconds_guide=t_guide - t_feat, seconds_regression=t_reg - t_guide)
+    return RHFOutput(out, err, fhat, M, gra, models.cy, models.cx, models.cr, ks[k_idx],
+                     Ecum / data.weis.sum(), detailed, info)
+
+
+def _diagnostics(models: ModelSet, detailed, k_opt, bad, vy_filled: float, active: int,
+                 params: Params) -> dict:
+    """Scalar diagnostics of a reconstruction (``RHFOutput.info``)."""
+    n_models = models.cy.size
+    return {
         "models": int(n_models),
-        "models_small": int((cr == min(params.radius_small, params.radius_medium,
-                                       params.radius_large)).sum()),
-        "models_fill": int(fill_models),
-        "uncovered_fraction": uncovered_frac,
+        "models_small": int((models.cr == min(params.radius_small, params.radius_medium,
+                                              params.radius_large)).sum()),
+        "models_fill": int(models.fill_models),
+        "uncovered_fraction": models.uncovered_fraction,
         "detailed_patch_fraction": float(detailed.mean()) if detailed.size else 0.0,
-        "pixels_per_model": float(npx / max(n_models, 1)),
-        "mean_k": float(ks[k_idx].mean()) if n_models else 0.0,
+        "pixels_per_model": float(bad.size / max(n_models, 1)),
+        "mean_k": float(k_opt.mean()) if n_models else 0.0,
         "missing_pixels": int(bad.sum()),
         "variance_filled_fraction": vy_filled,
         "active_features": int(active),
-        "seconds_prepare": t_prep - t0,
-        "seconds_features": t_feat - t_prep,
-        "seconds_guide": t_guide - t_feat,
-        "seconds_regression": t_reg - t_guide,
     }
-    return RHFOutput(out, err, fhat, M, gra, cy, cx, cr, ks[k_idx], Ecum / weis.sum(),
-                     detailed, info)
 
 
 # ------------------------------------------------------------- method interface
@@ -1080,13 +1361,21 @@ def _feature_arrays(buf: Buffers):
     return feats, fvars
 
 
+def _result(res: RHFOutput) -> MethodResult:
+    """MethodResult of a reconstruction; ``dimension`` is the active feature
+    count (the model dimension d of ``sample_map``)."""
+    return MethodResult(res.image, res.error, res.info,
+                        dimension=float(res.info["active_features"]))
+
+
 def reconstruct(buf: Buffers, params: Params | None = None) -> MethodResult:
     """RHF reconstruction of the accumulated buffers (Liu et al. 2018).
 
     Reads the colour mean and variance of the mean, the ``PASSES`` features
     and their variances, and n.  See ``rhf_reconstruct``; the error is the
     Eq. 12 estimate (bias^2 + variance) at each pixel's chosen k, averaged over
-    the overlapping models with the Eq. 13 weights.
+    the overlapping models with the Eq. 13 weights; ``dimension`` is the
+    number of active regression features.
     """
     params = params or Params()
     feats, fvars = _feature_arrays(buf)
@@ -1096,7 +1385,7 @@ def reconstruct(buf: Buffers, params: Params | None = None) -> MethodResult:
     # handed over as a callable (list.pop) so that rhf_reconstruct holds the
     # only reference and frees it once the variance is prepared
     res = rhf_reconstruct(buf.color.mean, cvar.pop, feats, fvars, buf.n, params, zero_var=zero)
-    return MethodResult(res.image, res.error, res.info)
+    return _result(res)
 
 
 def sample_map(buf: Buffers, result: MethodResult, budget: int, params: Params | None,
@@ -1105,27 +1394,32 @@ def sample_map(buf: Buffers, result: MethodResult, budget: int, params: Params |
 
     The paper stops at reconstruction; sampling follows LP (Moon et al. 2015,
     Sec. 5.2): the expected error reduction of one more sample at pixel i is
-    ``err_i * n_i^(-4/(d+4))`` (Moon et al. 2014) with d the number of active
-    regression features (``info['active_features']``, at most D = 9), made
-    relative by ``/(lum(image_i)^2 + 0.001)``; samples are allocated in
-    proportion (largest-remainder rounding, exact sum).  Pixels with no samples
-    yet use n = 1.  ``state`` is unused (kept for the interface).
+    ``err_i * n_i^(-4/(d+4))`` (``core.method.sampling_gain``) with d =
+    ``result.dimension``, the number of active regression features
+    (``DEFAULT_DIMENSION`` = D = 9 when None), made relative by
+    ``/(lum(image_i)^2 + 0.001)``; samples are allocated in proportion
+    (largest-remainder rounding, exact sum).  Pixels with no samples yet use
+    n = 1.  ``state`` is unused (kept for the interface).
     """
-    d = float(result.info.get("active_features", 9)) if result.info else 9.0
-    n = np.maximum(np.asarray(buf.n, np.float64), 1.0)
-    gain = np.asarray(result.error, np.float64) * n ** (-4.0 / (d + 4.0))
+    d = DEFAULT_DIMENSION if result.dimension is None else float(result.dimension)
+    gain = sampling_gain(result.error, buf.n, d)
     rho = relative_error(gain, result.image, 1e-3)
     return allocate(rho, int(budget))
 
 
-def denoise(color, color_var, features: dict, params: Params | None = None,
-            feature_vars: dict | None = None, n=None) -> MethodResult:
-    """Convenience: RHF on plain arrays.
+def denoise(color, color_var, features=None, feature_var=None, n=None,
+            params=None) -> MethodResult:
+    """RHF on plain arrays.
 
     color, color_var : (H, W, 3) pixel means and variance of the means (+inf =
-        unknown, see module notes); features : dict name -> (H, W, C) of
-        'normal', 'albedo', 'depth'; feature_vars : their variances (default
-        0, i.e. noise-free features); n : (H, W) samples per pixel (default 1).
+        unknown, see the module notes); features : dict name -> (H, W, C) of
+        'normal', 'albedo', 'depth' (a missing one is a constant feature);
+        feature_var : their variances (default 0, i.e. noise-free features);
+        n : (H, W) or scalar samples per pixel (default 1); params : Params or
+        dict (``params_from_dict``).
     """
-    res = rhf_reconstruct(color, color_var, features, feature_vars, n, params)
-    return MethodResult(res.image, res.error, res.info)
+    if isinstance(params, dict):
+        params = params_from_dict(Params, params)
+    if n is not None and np.ndim(n) == 0:
+        n = np.full(np.shape(color)[:2], float(n))
+    return _result(rhf_reconstruct(color, color_var, features, feature_var, n, params))

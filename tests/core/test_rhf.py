@@ -503,7 +503,7 @@ def test_sample_map_budget_and_preference():
     res = rhf.reconstruct(buf)
     err = np.full((32, 32), 1e-6)
     err[:, 16:] = 1e-2
-    res = MethodResult(res.image, err, res.info)
+    res = MethodResult(res.image, err, res.info, dimension=res.dimension)
     for budget in (0, 1, 1000, 4096):
         m = rhf.sample_map(buf, res, budget, rhf.Params(), {})
         assert m.dtype == np.int64 and m.shape == (32, 32)
@@ -517,7 +517,198 @@ def test_denoise_matches_reconstruct():
     feats, fvars = rhf._feature_arrays(buf)
     fvars = {k: v() for k, v in fvars.items()}
     a = rhf.reconstruct(buf)
-    b = rhf.denoise(buf.color.mean, buf.variance_of_mean(), feats, feature_vars=fvars, n=buf.n)
+    b = rhf.denoise(buf.color.mean, buf.variance_of_mean(), feats, feature_var=fvars, n=buf.n)
     np.testing.assert_allclose(a.image, b.image)
     c = rhf.denoise(buf.color.mean, buf.variance_of_mean(), feats)
     assert np.all(np.isfinite(c.image))
+
+
+# ------------------------------------------------------------- contract
+def test_method_contract_and_dimension():
+    assert rhf.NAME == "rhf" and rhf.ADAPTIVE is True and rhf.SAMPLER_USES_RESULT is True
+    truth, buf = scene(24, 24, seed=16)
+    res = rhf.reconstruct(buf)
+    assert res.dimension == res.info["active_features"] == 9
+    del buf.features["depth"]                       # a missing pass is a constant feature
+    assert rhf.reconstruct(buf).dimension == 8
+
+
+def test_sample_map_reads_dimension_not_info():
+    """The exponent of n comes from ``result.dimension`` (9 when None); the
+    info dict is ignored."""
+    truth, buf = scene(24, 24, seed=17)
+    buf.n[:, :12] *= 8.0                             # unequal n: the exponent matters
+    img = buf.color.mean
+    err = np.random.default_rng(0).uniform(0.1, 1.0, (24, 24))
+    m = lambda **kw: rhf.sample_map(buf, MethodResult(img, err, **kw), 5000, rhf.Params(), {})
+    np.testing.assert_array_equal(m(info={"active_features": 2}, dimension=9.0), m(info={}))
+    np.testing.assert_array_equal(m(info={"active_features": 9}, dimension=2.0),
+                                  m(info={}, dimension=2.0))
+    assert not np.array_equal(m(info={}, dimension=0.0), m(info={}, dimension=9.0))
+
+
+def test_denoise_unified_signature():
+    truth, buf = scene(16, 16, seed=18)
+    feats, _ = rhf._feature_arrays(buf)
+    a = rhf.denoise(buf.color.mean, buf.variance_of_mean(), feats, None, 4.0, {"iterations": 1})
+    b = rhf.denoise(buf.color.mean, buf.variance_of_mean(), features=feats,
+                    n=np.full((16, 16), 4.0), params=rhf.Params(iterations=1))
+    np.testing.assert_array_equal(a.image, b.image)
+    assert a.dimension == 9
+
+
+# ----------------------------------------------- separated regression steps
+def _windows(rng, c, n, P, K):
+    X = np.concatenate([np.ones((c, n, 1)), rng.uniform(-1, 1, (c, n, P - 1))], axis=2)
+    w = rng.uniform(0.05, 1, (c, K, n))
+    return X, w
+
+
+def test_window_error_terms_match_batch_least_squares_and_dense_hat():
+    """Eq. 2: X @ beta is the ridge-regularised weighted least-squares fit
+    (independent ``lstsq`` on the augmented system); Eq. 11: err_t =
+    mean_c (H P - P)^2 + (H^2) Var; Eq. 9-10: the block error is its
+    weighted mean."""
+    rng = np.random.default_rng(20)
+    c, n, P, K, ridge = 3, 21, 6, 4, 1e-3
+    X, w = _windows(rng, c, n, P, K)
+    Y, Pq = rng.normal(size=(c, n, 3)), rng.normal(size=(c, n, 3))
+    vq = rng.uniform(0, 1, (c, K, n))
+    cache = {}
+    beta, err_t, blk, var = rhf.window_error_terms(X, w, Y, Pq, vq, None, ridge, cache)
+    assert beta.shape == (c, K, P, 3) and err_t.shape == var.shape == (c, K, n)
+    assert blk.shape == (c, K) and cache["Ainv"].shape == (c, K, P, P)
+    for b in range(c):
+        for k in range(K):
+            lam = np.diag(rhf.regularizer(np.array(w[b, k].sum()), P, ridge))
+            sw = np.sqrt(w[b, k])[:, None]
+            A = np.concatenate([sw * X[b], np.diag(np.sqrt(lam))])
+            rhs = np.concatenate([sw * Y[b], np.zeros((P, 3))])
+            ref = np.linalg.lstsq(A, rhs, rcond=None)[0]
+            np.testing.assert_allclose(X[b] @ beta[b, k], X[b] @ ref, atol=1e-9)
+            H = dense_hat(X[b], w[b, k], ridge)
+            e = ((H @ Pq[b] - Pq[b]) ** 2).mean(-1) + (H ** 2) @ vq[b, k]
+            np.testing.assert_allclose(err_t[b, k], e, atol=1e-9)
+            np.testing.assert_allclose(blk[b, k], (w[b, k] * e).sum() / w[b, k].sum(),
+                                       atol=1e-9)
+
+
+def test_window_error_terms_linear_data_has_no_bias():
+    rng = np.random.default_rng(21)
+    c, n, P, K = 2, 16, 5, 3
+    X, w = _windows(rng, c, n, P, K)
+    Y = np.einsum("cnp,cpq->cnq", X, rng.normal(size=(c, P, 3)))
+    v = rng.uniform(0, 1, (c, n))
+    beta, err_t, _, var = rhf.window_error_terms(X, w, Y, Y, v, None, 1e-12, {})
+    np.testing.assert_allclose(np.einsum("cnp,ckpq->cknq", X, beta), Y[:, None].repeat(K, 1),
+                               atol=1e-8)
+    np.testing.assert_allclose(err_t, var, atol=1e-12)           # bias^2 = 0
+
+
+def test_bandwidth_choice_picks_minimum_of_error_curve_and_its_prediction():
+    """Eq. 10 on a known error curve (a parabola in k with a random minimum
+    per model): k_opt is its argmin, and the prediction and Eq. 13 weight
+    are those of that candidate."""
+    rng = np.random.default_rng(22)
+    ks = rhf.parse_bandwidths(rhf.Params().bandwidths)
+    c, n, P, K = 6, 9, 4, ks.size
+    best = rng.integers(0, K, c)
+    curve = (ks[None, :] - ks[best][:, None]) ** 2 + 0.5
+    kk = rhf.choose_bandwidth(curve)
+    np.testing.assert_array_equal(kk, best)
+    X, wk = _windows(rng, c, n, P, K)
+    beta = rng.normal(size=(c, K, P, 3))
+    wm, yk = rhf.predict_at_bandwidth(wk, X, beta, kk)
+    for i in range(c):
+        np.testing.assert_array_equal(wm[i], wk[i, best[i]] + rhf.MODEL_WEIGHT_FLOOR)
+        np.testing.assert_allclose(yk[i], X[i] @ beta[i, best[i]], atol=1e-14)
+
+
+def test_accumulate_and_combine_models_are_eq13():
+    """Overlapping windows: the sums equal a dense per-pixel loop, the output
+    is (sum_i w_ij y_ij + fw y_j) / (sum_i w_ij + fw), and equal inputs give
+    back that value (a convex combination: the weights are normalised)."""
+    rng = np.random.default_rng(23)
+    h, w, c, n = 4, 5, 3, 8
+    npx = h * w
+    idx = rng.integers(0, npx, (c, n))
+    inside = rng.uniform(size=(c, n)) < 0.8
+    inside[:, 0] = True
+    wm = rng.uniform(0, 1, (c, n))
+    yk = rng.normal(size=(c, n, 3))
+    y = rng.normal(size=(h, w, 3))
+    num, den = np.zeros((npx, 3)), np.zeros(npx)
+    flat = idx[inside]
+    rhf.accumulate_predictions(num, den, flat, wm[inside], yk, inside, int(flat.min()),
+                               int(flat.max()) + 1)
+    ref_num, ref_den = np.zeros((npx, 3)), np.zeros(npx)
+    for i in range(c):
+        for m in range(n):
+            if inside[i, m]:
+                ref_num[idx[i, m]] += wm[i, m] * yk[i, m]
+                ref_den[idx[i, m]] += wm[i, m]
+    np.testing.assert_allclose(num, ref_num, atol=1e-12)
+    np.testing.assert_allclose(den, ref_den, atol=1e-12)
+    fw = 0.02
+    out, dd = rhf.combine_models(num, den, y, fw)
+    ref = (ref_num + fw * y.reshape(npx, 3)) / (ref_den + fw)[:, None]
+    np.testing.assert_allclose(out, ref.reshape(h, w, 3), atol=1e-12)
+    np.testing.assert_allclose(dd, ref_den + fw, atol=1e-12)
+    # constant predictions and input: Eq. 13 returns the constant
+    num, den = np.zeros((npx, 3)), np.zeros(npx)
+    rhf.accumulate_predictions(num, den, flat, wm[inside], np.full((c, n, 3), 0.7), inside,
+                               0, npx)
+    out, _ = rhf.combine_models(num, den, np.full((h, w, 3), 0.7), fw)
+    np.testing.assert_allclose(out, 0.7, rtol=1e-14)
+
+
+def test_error_at_bandwidth_equals_eq12_of_full_iterations():
+    """The last iteration recomputes the earlier Eq. 11 terms at k_opt only;
+    that must equal the Eq. 12 combination of the full per-k terms."""
+    rng = np.random.default_rng(24)
+    h, w, c, n, P, K, T = 5, 6, 3, 9, 5, 3, 3
+    npx = h * w
+    X, wfit = _windows(rng, c, n, P, K)
+    idx = rng.integers(0, npx, (c, n))
+    Yq = rng.normal(size=(c, n, 3))
+    var0 = rng.uniform(0, 1, npx)
+    pilots = [(rng.normal(size=(h, w, 3)), None)]
+    pilots += [(rng.normal(size=(h, w, 3)), rng.uniform(0, 1, (h, w, K)).astype(np.float32))
+               for _ in range(T - 1)]
+    data = rhf.RegressionData(fhat=np.zeros((h, w, 7), np.float32), target=None, y=None,
+                              valid=None, var0=var0, guide_var=None, cy=None, cx=None,
+                              weis=rhf.iteration_weights(T), ridge=1e-3, input_weight=0.02)
+    full, cache = [], {}
+    for t in range(T):
+        Pq, vq, uq = rhf.gather_pilot(pilots[t], idx, var0, None)
+        full.append(rhf.window_error_terms(X, wfit, Yq, Pq, vq, uq, 1e-3, cache)[1])
+    kk = rng.integers(0, K, c)
+    ek = rhf.error_at_bandwidth(X, wfit, Yq, idx, pilots, cache["Ainv"], kk, full[-1], data)
+    ar = np.arange(c)
+    ref = sum(data.weis[t] * full[t][ar, kk] for t in range(T)) / data.weis.sum()
+    np.testing.assert_allclose(ek, ref, rtol=1e-10, atol=1e-14)
+
+
+def test_regression_weights_and_model_chunks():
+    """w(i, j) = NLM(M, k, false) (Sec. 3.3): in [0, 1], 1 at the centre, 0
+    outside the image; every model lands in exactly one chunk of at most
+    CHUNK_PIXELS window pixels (or one model)."""
+    truth, buf = scene(40, 36, seed=25)
+    M = buf.color.mean
+    vM = buf.variance_of_mean()
+    p = rhf.Params()
+    ks = rhf.parse_bandwidths(p.bandwidths)
+    cy, cx = np.array([0, 20, 39]), np.array([0, 17, 35])
+    wk = rhf.regression_weights(M, vM, cy, cx, 5, ks, p)
+    assert wk.shape == (3, ks.size, 121) and wk.dtype == np.float32
+    assert wk.min() >= 0 and wk.max() <= 1
+    np.testing.assert_array_equal(wk[:, :, 60], 1.0)                # window centre
+    _, inside = rhf._window_index(cy, cx, 5, 40, 36)
+    assert np.all(wk[~np.broadcast_to(inside[:, None], wk.shape)] == 0)
+    cy, cx, cr, _ = rhf.select_centers(np.zeros((40, 36)), p)
+    models = rhf.place_models(M.astype(np.float32), vM.astype(np.float32), cy, cx, cr, ks, p)
+    ids = np.sort(np.concatenate([ch.ids for ch in models.chunks]))
+    np.testing.assert_array_equal(ids, np.arange(models.cy.size))
+    for ch in models.chunks:
+        assert ch.weights.shape == (ch.ids.size, ks.size, (2 * ch.radius + 1) ** 2)
+        assert ch.ids.size == 1 or ch.weights[:, 0].size <= rhf.CHUNK_PIXELS
