@@ -1,6 +1,8 @@
 """Launcher for ./cycles-adaptive: imports the repository as the package
 ``cycles_adaptive`` (the same package layout Blender uses for the extension)
-and runs the command line.  Not part of the built extension."""
+and runs the command line with the repository's developer commands
+(``bench``, ``references``: :data:`bench.COMMANDS`).  Not part of the built
+extension."""
 import importlib.util
 import os
 import sys
@@ -21,5 +23,6 @@ def load_package(name: str = "cycles_adaptive"):
 
 if __name__ == "__main__":
     load_package()
+    from cycles_adaptive.bench import COMMANDS
     from cycles_adaptive.operators import cli
-    sys.exit(cli.main(sys.argv[1:]))
+    sys.exit(cli.main(sys.argv[1:], extra_commands=COMMANDS))

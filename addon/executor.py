@@ -145,6 +145,21 @@ def set_exr_output(guard: SettingsGuard, settings) -> None:
     guard.set(settings, "exr_codec", "ZIP")
 
 
+def render_still(scene, view_layer, path: str, what: str = "") -> dict:
+    """Render ``scene`` / ``view_layer`` once with its current settings to
+    ``path`` (``write_still``, Cycles' log silenced), read the file back and
+    delete it: the passes dict of :func:`core.io.read_layers`.  SceneError
+    (naming ``what``) when Cycles wrote no file."""
+    scene.render.filepath = path
+    with quiet_stdout():
+        bpy.ops.render.render(write_still=True, scene=scene.name, layer=view_layer.name)
+    if not os.path.isfile(path):
+        raise SceneError("Cycles wrote no image" + (f" {what}" if what else ""))
+    passes, _ = imageio.read_layers(path)
+    os.unlink(path)
+    return passes
+
+
 class CyclesExecutor:
     """Render RegionTasks of one scene / view layer / frame with Cycles.
 
@@ -274,14 +289,8 @@ class CyclesExecutor:
             c.samples = int(task.samples)
             c.sample_offset = int(task.offset)
         path = os.path.join(self.tmpdir, f"task{self.renders:06d}.exr")
-        r.filepath = path
-        with quiet_stdout():
-            bpy.ops.render.render(write_still=True, scene=s.name, layer=self.view_layer.name)
         self.renders += 1
-        if not os.path.isfile(path):
-            raise SceneError(f"Cycles wrote no image for {task}")
-        passes, _ = imageio.read_layers(path)
-        os.unlink(path)
+        passes = render_still(s, self.view_layer, path, f"for {task}")
         h, w = y1 - y0, x1 - x0
         color = passes.get("Combined")
         if color is None or color.shape[:2] != (h, w):
@@ -333,19 +342,16 @@ def write_preview(scene, rgba: np.ndarray, path: str) -> None:
     px[:, :, :rgba.shape[2]] = np.nan_to_num(rgba[:, :, :4], nan=0.0, posinf=0.0, neginf=0.0)
     img = bpy.data.images.new("cycles_adaptive_preview", w, h, alpha=True, float_buffer=True)
     guard = SettingsGuard()
-    tmp = imageio.temp_beside(path, ".png")
     try:
-        img.pixels.foreach_set(px[::-1].ravel())  # Blender rows run bottom to top
-        st = scene.render.image_settings
-        if hasattr(st, "media_type"):
-            guard.set(st, "media_type", "IMAGE")
-        guard.set(st, "file_format", "PNG")
-        guard.set(st, "color_mode", "RGBA")
-        guard.set(st, "color_depth", "8")
-        img.save_render(tmp, scene=scene)
-        os.replace(tmp, path)
+        with imageio.atomic_path(path, ".png") as tmp:
+            img.pixels.foreach_set(px[::-1].ravel())  # Blender rows run bottom to top
+            st = scene.render.image_settings
+            if hasattr(st, "media_type"):
+                guard.set(st, "media_type", "IMAGE")
+            guard.set(st, "file_format", "PNG")
+            guard.set(st, "color_mode", "RGBA")
+            guard.set(st, "color_depth", "8")
+            img.save_render(tmp, scene=scene)
     finally:
         guard.restore()
         bpy.data.images.remove(img)
-        if os.path.exists(tmp):
-            os.unlink(tmp)

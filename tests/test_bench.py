@@ -155,7 +155,7 @@ def test_missing_and_foreign_references_are_refused(tmp_path):
 
 def test_reference_from_another_blender_version_is_refused(tmp_path):
     """check_reference (what the bench calls) refuses another version, naming both."""
-    from cycles_adaptive.operators import references as refs
+    from cycles_adaptive.bench import references as refs
     exr = tmp_path / "x.f0001.r100.s1024.exr"
     exr.write_bytes(b"not read")
     (tmp_path / "x.f0001.r100.s1024.json").write_text(json.dumps({"blender": "3.6.0", "scene": "x"}))
@@ -164,7 +164,7 @@ def test_reference_from_another_blender_version_is_refused(tmp_path):
 
 
 def test_speedup_curve_interpolates_log_log_and_extrapolates_with_slope_minus_one():
-    from cycles_adaptive.operators.bench import speedup_curve
+    from cycles_adaptive.bench.targets import speedup_curve
     t = speedup_curve([(0.1, 1.0), (0.01, 10.0)])
     assert t(0.1) == pytest.approx(1.0)
     assert t(0.01) == pytest.approx(10.0)
@@ -172,3 +172,15 @@ def test_speedup_curve_interpolates_log_log_and_extrapolates_with_slope_minus_on
     assert t(0.001) == pytest.approx(100.0)   # slope -1 beyond the best uniform render
     assert t(1.0) == pytest.approx(0.1)       # and beyond the worst
     assert t(float("nan")) != t(float("nan"))  # NaN for no error
+
+
+def test_the_extension_ships_without_the_benchmark():
+    """The build excludes the top-level bench/ package, and the shipped
+    operators/ package has no bench or references module."""
+    import tomllib
+    with open(os.path.join(ROOT, "blender_manifest.toml"), "rb") as f:
+        manifest = tomllib.load(f)
+    assert "/bench/" in manifest["build"]["paths_exclude_pattern"]
+    for name in ("bench", "references"):
+        assert not os.path.exists(os.path.join(ROOT, "operators", name + ".py")), name
+        assert not os.path.isdir(os.path.join(ROOT, "operators", name)), name

@@ -1,18 +1,19 @@
-"""Issue 3 (AWR), why soft_shadows loses to plain sampling at 16 spp: the
-measurements behind the issue note, reproducible.
+"""AWR: why soft_shadows loses to plain sampling at 16 spp, measured
+reproducibly.
 
     .venv/bin/python tools/awr_study.py [--scenes soft_shadows cornell ...] [--groups 32] [--shifts 1]
 
 ``--seeds 1,2,3`` instead replays the render loop at ``--spp`` (16) for those
-Cycles seeds from 1-sample frames (uniform, AWR with 1 and 4 shifts): the
-issue's criterion away from the benchmark's seed 0 (about 10 s per seed and
-scene).
+Cycles seeds from 1-sample frames (uniform, AWR with 1 and 4 shifts): AWR
+against uniform at equal spp away from the benchmark's seed 0 (about 10 s per
+seed and scene).
 
 ``--shifts`` is AWR's cycle spinning (``awr.Params.shifts``); the default 1 is
 the paper's single transform, which the figures in the README's facts section
 describe (the product's default is 4).
 
 Needs the 1024-spp references (cached): ./cycles-adaptive references
+(``--scenes`` defaults to every sample scene, in the benchmark's order).
 
 Per scene it prints
 1. QMC variance ratios.  Renders ``--groups`` whole-frame groups of 1 sample,
@@ -45,14 +46,12 @@ import bpy  # noqa: E402
 import numpy as np  # noqa: E402
 
 from cycles_adaptive.addon.executor import CyclesExecutor  # noqa: E402
-from cycles_adaptive.core import awr, io, metrics  # noqa: E402
+from cycles_adaptive.bench import references as refs  # noqa: E402
+from cycles_adaptive.core import awr, metrics  # noqa: E402
 from cycles_adaptive.core.buffers import LUMA, Buffers  # noqa: E402
 from cycles_adaptive.core.method import consistency_guard  # noqa: E402
 from cycles_adaptive.core.pipeline import AdaptiveRun, Options  # noqa: E402
 from cycles_adaptive.core.regions import RegionTask  # noqa: E402
-
-SCENES = ("soft_shadows", "cornell", "dof", "glossy", "motion_blur", "animated")
-
 
 def subsets(g, n, m):
     """Buffers of the first ``n`` 1-sample frames ``g`` merged as ``n / m``
@@ -67,15 +66,16 @@ def reconstruct(buf, scale, shifts):
     return consistency_guard(res, buf, 3.0).image
 
 
-def frames(scene, count, seed=0):
+def frames(scene, count, seed=0, ref_dir=None):
     """(reference, scene, ``count`` whole-frame renders of 1 sample each at
     sample offsets 0, 1, ... with Cycles seed ``seed``)."""
-    ref_path = os.path.join(ROOT, "references", f"{scene}.f0001.r100.s1024.exr")
-    if not os.path.exists(ref_path):
-        sys.exit(f"missing {ref_path}: run ./cycles-adaptive references --scenes {scene}")
-    ref = io.read_rgb(ref_path)
-    bpy.ops.wm.open_mainfile(filepath=os.path.join(ROOT, "sample_blends", f"{scene}.blend"))
+    refs.open_scene(refs.scene_path(scene), force=True)
     sc = bpy.context.scene
+    ref_path = refs.reference_path(scene, sc.frame_current, 100, refs.DEFAULT_SPP, ref_dir)
+    try:
+        ref, _ = refs.load_reference(ref_path)
+    except refs.ReferenceFileError as exc:
+        sys.exit(str(exc))
     with CyclesExecutor(sc, bpy.context.view_layer, (), seed=seed) as ex:
         h, wd = ex.size
         g = np.stack([np.asarray(ex.render(RegionTask(0, 0, wd, h, 1, frame=sc.frame_current,
@@ -108,13 +108,13 @@ def replay(g, ref, method, spp, params=None):
     return metrics.relmse(run.reconstruct().image, ref)
 
 
-def seeds(scenes, seed_list, spp):
-    """The issue's criterion (AWR vs uniform at equal spp, default options)
-    for other Cycles seeds, the loop replayed from 1-sample frames."""
+def seeds(scenes, seed_list, spp, ref_dir=None):
+    """AWR against uniform at equal spp (default options) for other Cycles
+    seeds, the loop replayed from 1-sample frames."""
     count = int(2 * spp + 8)  # the pixel cap (max_pixel_share 2) plus top-ups
     for seed in seed_list:
         for scene in scenes:
-            ref, _, g = frames(scene, count, seed)
+            ref, _, g = frames(scene, count, seed, ref_dir)
             u = replay(g, ref, "uniform", spp)
             a1 = replay(g, ref, "awr", spp, {"shifts": 1})
             a4 = replay(g, ref, "awr", spp, {"shifts": 4})
@@ -123,8 +123,8 @@ def seeds(scenes, seed_list, spp):
                   f"{100 * abs(1 - a4 / u):.1f} %", flush=True)
 
 
-def study(scene, n_groups, shifts):
-    ref, sc, g = frames(scene, n_groups)
+def study(scene, n_groups, shifts, ref_dir=None):
+    ref, sc, g = frames(scene, n_groups, ref_dir=ref_dir)
     w = 1.0 / (ref * ref + 0.01)  # the relMSE weights (core.metrics.relmse)
     weighted = lambda v: float((v * w).mean())  # noqa: E731
 
@@ -174,9 +174,11 @@ def study(scene, n_groups, shifts):
               f"{metrics.relmse(loop, ref):.2e}, awr with variance x k^-alpha "
               f"{metrics.relmse(corrected, ref):.2e}", flush=True)
 
+
 def main():
     ap = argparse.ArgumentParser()
-    ap.add_argument("--scenes", nargs="+", default=list(SCENES))
+    ap.add_argument("--scenes", nargs="+", default=None,
+                    help="sample scenes (default: every one in sample_blends/)")
     ap.add_argument("--groups", type=int, default=32)
     ap.add_argument("--shifts", type=int, default=1,
                     help="AWR grid translations (awr.Params.shifts; default 1, the paper's transform)")
@@ -184,14 +186,16 @@ def main():
                     help="comma-separated Cycles seeds: instead of the study, replay the render loop "
                          "(uniform, awr with 1 and 4 shifts) for each seed and scene")
     ap.add_argument("--spp", type=float, default=16, help="budget of the --seeds replays (default 16)")
+    ap.add_argument("--reference-dir", default=None, help="reference cache (default references/)")
     args = ap.parse_args()
+    args.scenes = args.scenes or refs.scene_names(None)
     if args.seeds:
-        seeds(args.scenes, [int(x) for x in args.seeds.split(",")], args.spp)
+        seeds(args.scenes, [int(x) for x in args.seeds.split(",")], args.spp, args.reference_dir)
         return
     if args.groups < 16:
         sys.exit("--groups must be at least 16")
     for scene in args.scenes:
-        study(scene, args.groups, args.shifts)
+        study(scene, args.groups, args.shifts, args.reference_dir)
 
 
 if __name__ == "__main__":

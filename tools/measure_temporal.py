@@ -1,6 +1,6 @@
-"""Issue 6, part 4: per-frame relMSE and total time on the animated sample
-scene for independent frames, reprojection and LP's temporal extension, at
-equal rendered samples per frame.
+"""Per-frame relMSE and total time on the animated sample scene for
+independent frames, reprojection and LP's temporal extension, at equal rendered
+samples per frame.
 
     .venv/bin/python tools/measure_temporal.py [--frames 1-8] [--spp 8] [--percentage 50]
 
@@ -15,6 +15,13 @@ import sys
 import tempfile
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+sys.path.insert(0, ROOT)
+from launch import load_package  # noqa: E402
+
+load_package()
+from cycles_adaptive.bench import references as refs  # noqa: E402
+
+SCENE = "animated"
 CASES = [("var", "none"), ("var", "reproject"), ("lp", "none"), ("lp", "reproject"), ("lp", "lp")]
 
 
@@ -23,14 +30,15 @@ def main():
     ap.add_argument("--frames", default="1-8")
     ap.add_argument("--spp", default="8")
     ap.add_argument("--percentage", default="50")
+    ap.add_argument("--reference-dir", default=None, help="reference cache (default references/)")
     args = ap.parse_args()
-    ref = os.path.join(ROOT, "references", f"animated.f####.r{args.percentage}.s1024.exr")
+    ref = refs.reference_pattern(SCENE, int(args.percentage), refs.DEFAULT_SPP, args.reference_dir)
     rows = []
     with tempfile.TemporaryDirectory() as tmp:
         for method, temporal in CASES:
             out = os.path.join(tmp, f"{method}_{temporal}_####.exr")
-            cmd = [os.path.join(ROOT, "cycles-adaptive"), "render",
-                   os.path.join(ROOT, "sample_blends", "animated.blend"), "--frames", args.frames,
+            cmd = [os.path.join(ROOT, "cycles-adaptive"), "render", refs.scene_path(SCENE),
+                   "--frames", args.frames,
                    "--method", method, "--temporal", temporal, "--spp", args.spp,
                    "--resolution-percentage", args.percentage, "--out", out, "--reference", ref,
                    "--json", "--quiet", "--no-preview"]

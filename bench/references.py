@@ -1,8 +1,5 @@
 """High-spp references of the sample scenes, rendered once and cached.
 
-``./cycles-adaptive references [--scenes NAMES] [--spp 1024] [--resolution-percentage P]
-[--frames F] [--dir references] [--force]``
-
 A reference is rendered through :class:`~addon.executor.CyclesExecutor` (the same
 settings as our runs: Tabulated Sobol pattern, no adaptive sampling, no
 denoising, compositing off) with a **different seed** (``REFERENCE_SEED``)
@@ -15,15 +12,18 @@ a *perfect* image would still show against this reference (its noise floor).
 Cache: ``DIR/<scene>.f<frame>.r<percent>.s<spp>.exr`` (multilayer EXR: ``Combined``
 and ``Variance`` of the mean) with a JSON sidecar ``.json`` recording spp, seed,
 resolution, frame, Blender version and the SHA-256 of the .blend.  A cached
-reference is reused only when all of these match; ``references`` re-renders one
-that does not, the benchmark refuses one from another Blender version.
+reference is reused only when all of these match; ``./cycles-adaptive references``
+(:mod:`bench.cli`) re-renders one that does not, the benchmark refuses one from
+another Blender version.
+
+Also the sample scene list (``sample_blends/*.blend``) the benchmark and the
+developer tools (``tools/``) share.
 """
 from __future__ import annotations
 
 import hashlib
 import json
 import os
-import sys
 import time
 
 import numpy as np
@@ -38,6 +38,8 @@ DEFAULT_SPP = 1024
 #: sample subsets a reference is rendered in (variance of the reference's mean)
 SUBSETS = 8
 SIDECAR_VERSION = 1
+#: the frame-number placeholder of a reference pattern (``render --frames --reference``)
+FRAME_PLACEHOLDER = "####"
 
 
 class ReferenceFileError(ValueError):
@@ -87,6 +89,7 @@ def scene_names(text: str | None) -> list:
 
 
 def scene_label(path: str) -> str:
+    """``.../cornell.blend`` (or ``cornell``) -> ``cornell``."""
     return os.path.splitext(os.path.basename(path))[0]
 
 
@@ -98,12 +101,36 @@ def file_sha256(path: str) -> str:
     return h.hexdigest()
 
 
+def open_scene(path: str, force: bool = False) -> None:
+    """Open a .blend (skipped when it is the open file, unless ``force``);
+    ValueError with Blender's last message when it cannot be opened."""
+    import bpy
+    if not force and os.path.abspath(bpy.data.filepath or "") == os.path.abspath(path):
+        return
+    try:
+        bpy.ops.wm.open_mainfile(filepath=path, load_ui=False)
+    except RuntimeError as exc:
+        raise ValueError(f"{path}: cannot open ({str(exc).strip().splitlines()[-1]})") from None
+
+
 # ------------------------------------------------------------------- cache
+def _cache_name(scene: str, frame_text: str, resolution_percentage: int, spp: int) -> str:
+    return f"{scene_label(scene)}.f{frame_text}.r{int(resolution_percentage)}.s{int(spp)}.exr"
+
+
 def reference_path(scene: str, frame: int, resolution_percentage: int, spp: int,
                    directory: str | None = None) -> str:
+    """Cache path of the reference of ``scene`` (name or .blend path) at ``frame``."""
     d = os.path.abspath(directory or DEFAULT_DIR)
-    return os.path.join(d, f"{scene_label(scene)}.f{int(frame):04d}.r{int(resolution_percentage)}"
-                           f".s{int(spp)}.exr")
+    return os.path.join(d, _cache_name(scene, f"{int(frame):04d}", resolution_percentage, spp))
+
+
+def reference_pattern(scene: str, resolution_percentage: int, spp: int,
+                      directory: str | None = None) -> str:
+    """:func:`reference_path` with ``####`` for the frame number: the per-frame
+    reference pattern ``./cycles-adaptive render --frames ... --reference`` takes."""
+    d = os.path.abspath(directory or DEFAULT_DIR)
+    return os.path.join(d, _cache_name(scene, FRAME_PLACEHOLDER, resolution_percentage, spp))
 
 
 def sidecar_path(exr: str) -> str:
@@ -111,6 +138,7 @@ def sidecar_path(exr: str) -> str:
 
 
 def wanted_record(scene: str, frame: int, resolution_percentage: int, spp: int, seed: int) -> dict:
+    """The sidecar fields a cached reference must match (``MATCH_KEYS``)."""
     import bpy
     return {"version": SIDECAR_VERSION, "scene": scene_label(scene), "blend_sha256": file_sha256(scene),
             "frame": int(frame), "resolution_percentage": int(resolution_percentage),
@@ -122,6 +150,8 @@ MATCH_KEYS = ("version", "scene", "blend_sha256", "frame", "resolution_percentag
 
 
 def read_sidecar(exr: str) -> dict | None:
+    """The JSON sidecar of a reference EXR; None when either file is missing
+    or the sidecar is unreadable."""
     p = sidecar_path(exr)
     if not (os.path.isfile(exr) and os.path.isfile(p)):
         return None
@@ -176,7 +206,7 @@ def ensure_reference(scene_path_: str, frame: int | None = None, resolution_perc
     if not 1 <= int(resolution_percentage) <= 10000:
         raise ValueError("resolution percentage must be between 1 and 10000")
     if frame is None:
-        _open(scene_path_)
+        open_scene(scene_path_)
         frame = bpy.context.scene.frame_current
     path = reference_path(scene_path_, frame, resolution_percentage, spp, directory)
     wanted = wanted_record(scene_path_, frame, resolution_percentage, spp, seed)
@@ -194,26 +224,24 @@ def ensure_reference(scene_path_: str, frame: int | None = None, resolution_perc
     return path
 
 
-def _open(path: str, force: bool = False) -> None:
-    """Open a .blend (skipped when it is the open file, unless ``force``)."""
-    import bpy
-    if not force and os.path.abspath(bpy.data.filepath or "") == os.path.abspath(path):
-        return
-    try:
-        bpy.ops.wm.open_mainfile(filepath=path, load_ui=False)
-    except RuntimeError as exc:
-        raise ValueError(f"{path}: cannot open ({str(exc).strip().splitlines()[-1]})") from None
+def noise_relmse(variance_of_mean: np.ndarray, mean: np.ndarray) -> float:
+    """Expected relMSE of a perfect image against a reference with this
+    variance of the mean (its noise floor): mean of var / (r^2 + 0.01)."""
+    return float((variance_of_mean / (mean * mean + 0.01)).mean())
 
 
 def render_reference(scene_path_: str, frame: int, resolution_percentage: int, spp: int, seed: int,
                      path: str, record: dict, log=print) -> dict:
     """Render and write one reference (EXR + sidecar); returns the sidecar record.
+
+    ``spp`` samples in ``min(SUBSETS, spp)`` consecutive sample subsets
+    (:func:`core.pipeline.subset_tasks`), so the variance of the mean is known.
     The open file's settings are restored afterwards."""
     import bpy
     from ..addon import executor as ex
     from ..core.buffers import Buffers
-    from ..core.regions import RegionTask
-    _open(scene_path_)
+    from ..core.pipeline import merge_render, subset_tasks
+    open_scene(scene_path_)
     scene = bpy.context.scene
     vl = bpy.context.view_layer
     os.makedirs(os.path.dirname(path), exist_ok=True)
@@ -224,16 +252,11 @@ def render_reference(scene_path_: str, frame: int, resolution_percentage: int, s
         with ex.CyclesExecutor(scene, vl, (), seed=seed) as exe:
             h, w = exe.size
             buf = Buffers.empty(h, w, ("alpha",))
-            k = max(1, min(SUBSETS, spp))
-            base, extra = divmod(spp, k)
-            offset = 0
-            for s in range(k):
-                count = base + (1 if s < extra else 0)
-                color, _ = exe.render(RegionTask(0, 0, w, h, count, frame=frame, offset=offset))
-                buf.merge_group(color[:, :, :3], count, {"alpha": color[:, :, 3:4]})
-                offset += count
-                log(f"[references] {scene_label(scene_path_)} frame {frame}: {offset}/{spp} spp "
-                    f"({time.perf_counter() - t0:.1f} s)")
+            tasks = subset_tasks(w, h, spp, SUBSETS, frame)
+            for task in tasks:
+                merge_render(buf, task, *exe.render(task))
+                log(f"[references] {scene_label(scene_path_)} frame {frame}: "
+                    f"{task.offset + task.samples}/{spp} spp ({time.perf_counter() - t0:.1f} s)")
     finally:
         guard.restore()
     seconds = time.perf_counter() - t0
@@ -243,36 +266,36 @@ def render_reference(scene_path_: str, frame: int, resolution_percentage: int, s
     nonfinite = int((~np.isfinite(mean)).any(axis=-1).sum())
     if nonfinite:
         raise ReferenceFileError(f"reference of {scene_label(scene_path_)} has {nonfinite} non-finite pixels")
-    noise = float((var / (mean * mean + 0.01)).mean())
     rec = dict(record)
-    rec.update({"width": int(w), "height": int(h), "subsets": int(k), "render_seconds": seconds,
-                "noise_relmse": noise, "sampling_pattern": "TABULATED_SOBOL",
+    rec.update({"width": int(w), "height": int(h), "subsets": len(tasks), "render_seconds": seconds,
+                "noise_relmse": noise_relmse(var, mean), "sampling_pattern": "TABULATED_SOBOL",
                 "created": time.strftime("%Y-%m-%dT%H:%M:%S")})
     combined = np.concatenate([mean, buf.features["alpha"].mean], axis=-1)
     imageio.write_layers(path, {"Combined": combined, "Variance": var},
                          attributes={"cycles_adaptive/reference": json.dumps(rec)})
-    tmp = sidecar_path(path) + ".tmp"
-    with open(tmp, "w") as f:
-        json.dump(rec, f, indent=1)
-    os.replace(tmp, sidecar_path(path))
+    imageio.write_text(sidecar_path(path), json.dumps(rec, indent=1))
     return rec
 
 
 def load_reference(path: str, shape=None) -> tuple:
-    """(rgb (H, W, 3) float64, sidecar dict) of a checked reference; a size that
-    differs from ``shape`` (H, W) raises ReferenceFileError with both sizes."""
+    """(rgb (H, W, 3) float64, sidecar dict) of a checked reference
+    (:func:`check_reference`, then :func:`core.io.read_reference`).
+
+    A size that differs from ``shape`` (H, W) raises ReferenceFileError (bad
+    input: the benchmark stops); an unreadable file raises ImageFileError as
+    any broken image does."""
     rec = check_reference(path)
-    rgb = imageio.read_rgb(path)
+    rgb = imageio.read_reference(path)
     if shape is not None and rgb.shape[:2] != tuple(shape):
         raise ReferenceFileError(f"reference {path} is {rgb.shape[1]}x{rgb.shape[0]}, the render is "
                              f"{shape[1]}x{shape[0]}")
     return rgb, rec
 
 
-# --------------------------------------------------------------------- CLI
-def parse_frames(text: str | None, scene) -> list:
-    """``None`` -> [current frame]; ``"all"`` -> frame_start..frame_end;
-    ``"1-12"``, ``"1,3,5"`` -> those frames (whole numbers >= 0)."""
+def parse_reference_frames(text: str | None, scene) -> list:
+    """Frames of ``references --frames``: ``None`` -> [current frame]; ``"all"``
+    -> frame_start..frame_end; ``"1-12"``, ``"1,3,5"`` -> those frames (whole
+    numbers >= 0).  (``render --frames A-B:STEP`` is ``operators.job.parse_frames``.)"""
     if not text:
         return [scene.frame_current]
     if text == "all":
@@ -288,56 +311,3 @@ def parse_frames(text: str | None, scene) -> list:
     if not out:
         raise ValueError("--frames: no frames given")
     return out
-
-
-def add_arguments(p) -> None:
-    p.add_argument("--scenes", help="comma-separated sample scene names or .blend paths "
-                   f"(default: every scene in sample_blends/)")
-    p.add_argument("--spp", type=int, default=DEFAULT_SPP, help="samples per pixel of each "
-                   "reference (>= 1024 for the benchmark)")
-    p.add_argument("--resolution-percentage", type=int, default=100, help="resolution %% to render at")
-    p.add_argument("--frames", help="frames to render: 'all' (frame range of the file), '1-12', "
-                   "'1,3'; default: each file's current frame. Only scenes with more than one "
-                   "frame render more than one.")
-    p.add_argument("--dir", default=DEFAULT_DIR, help="cache folder (default: references/ in the repo)")
-    p.add_argument("--seed", type=int, default=REFERENCE_SEED, help="Cycles seed of the references; "
-                   "must differ from the runs' seed (0)")
-    p.add_argument("--force", action="store_true", help="re-render even when a matching one is cached")
-    p.add_argument("--json", action="store_true", help="print one JSON object as the last line")
-
-
-def main(args) -> int:
-    import bpy
-    if args.spp < 1:
-        raise ValueError("--spp must be >= 1")
-    if args.spp < 1024:
-        print(f"[references] note: {args.spp} spp is below the benchmark's 1024", file=sys.stderr)
-    if args.seed == 0:
-        raise ValueError("--seed 0 is the runs' seed; a reference must use another seed")
-    names = scene_names(args.scenes)
-    done = []
-    for name in names:
-        path = scene_path(name)
-        _open(path)
-        scene = bpy.context.scene
-        frames = parse_frames(args.frames, scene)
-        if len(frames) > 1 and scene.frame_end <= scene.frame_start:
-            frames = [scene.frame_current]  # a still: one frame
-        for fr in frames:
-            want = wanted_record(path, fr, args.resolution_percentage, args.spp, args.seed)
-            cached = not args.force and not mismatch(
-                read_sidecar(reference_path(path, fr, args.resolution_percentage, args.spp, args.dir)), want)
-            ref = ensure_reference(path, fr, args.resolution_percentage, args.spp, args.seed,
-                                   args.dir, force=args.force, other_version="render",
-                                   log=lambda m: print(m, flush=True))
-            rec = read_sidecar(ref) or {}
-            print(f"[references] {scene_label(path)} frame {fr}: {ref} "
-                  f"({'cached' if cached else 'rendered'}, {rec.get('width')}x{rec.get('height')}, "
-                  f"{rec.get('spp')} spp, noise floor relMSE {rec.get('noise_relmse', float('nan')):.2e})",
-                  flush=True)
-            done.append({"scene": scene_label(path), "frame": fr, "path": ref, "cached": cached,
-                         **{k: rec.get(k) for k in ("spp", "seed", "width", "height", "blender",
-                                                   "render_seconds", "noise_relmse")}})
-    if args.json:
-        print(json.dumps({"references": done}))
-    return 0
