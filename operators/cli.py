@@ -1,6 +1,7 @@
-"""Command line: ``./cycles-adaptive {render,denoise,bench}`` and the Blender
-command ``blender -b scene.blend -c cycles_adaptive render ...`` (same parser,
-same job function).
+"""Command line: ``render`` and ``denoise``, as ``./cycles-adaptive`` and as the
+Blender command ``blender -b scene.blend -c cycles_adaptive render ...`` (same
+parser, same job function).  The repository's ``./cycles-adaptive`` adds the
+developer commands ``bench`` and ``references`` (``bench/``, not shipped).
 
 Exit codes: 0 done, 1 failed during the run, 2 bad input (one-line message,
 no traceback), 130 interrupted (the partial result was written).
