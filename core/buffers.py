@@ -1,7 +1,8 @@
 """Per-pixel sample statistics: the one shape of data every method consumes.
 
 Cycles gives no per-sample output and no variance pass.  We render K *sample
-subsets* (disjoint ranges of the sample sequence, see DESIGN.md) and treat each
+subsets* (disjoint ranges of the sample sequence, which merge exactly into one
+render: tests/test_executor.py) and treat each
 subset render as one group of ``n_i`` samples with mean ``mu_i``.  Groups are
 merged with Chan's parallel update (Chan, Golub, LeVeque 1979)::
 

@@ -1,4 +1,5 @@
-"""Error metrics, stated exactly as in DESIGN.md."""
+"""Error metrics, stated exactly as the README and every report use them:
+relMSE = mean over pixels and RGB of (x - r)^2 / (r^2 + 0.01)."""
 from __future__ import annotations
 
 import numpy as np

@@ -42,7 +42,7 @@ Default ``task_cost``: measured with bpy 4.5 on this project's 2-core machine
 per pixel-sample on the sample scenes (cornell, glossy), i.e. one render costs
 as much as ~760-1040 pixel-samples.  The default is 1024; heavier scenes (more
 us per pixel-sample) make a task relatively cheaper, so the value errs towards
-fewer, larger renders only on light scenes.  (DESIGN.md's 0.02 s for a 32x32
+fewer, larger renders only on light scenes.  (An earlier 0.02 s for a 32x32
 border render included scene sync.)  The loop's ``Options.task_cost`` overrides it.
 
 Border conversion: Blender computes the border in pixels as

@@ -1,4 +1,4 @@
-"""The command line contract (DESIGN.md): JSON fields, bad input, interrupts,
+"""The command line contract (README, "Command line"): JSON fields, bad input, interrupts,
 resume.  Runs ./cycles-adaptive as a user would (subprocesses)."""
 import json
 import os

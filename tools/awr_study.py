@@ -88,7 +88,7 @@ class ReplayExecutor:
     """Executor answering region tasks from whole-frame 1-sample renders: a
     region render of samples ``offset .. offset + samples - 1`` equals those
     frames' mean over the region (sample subsets and border renders merge
-    exactly, DESIGN.md), so the render loop replays without Cycles."""
+    exactly: tests/test_executor.py), so the render loop replays without Cycles."""
 
     def __init__(self, g):
         self.g = g
