@@ -1,204 +1,104 @@
-"""``awr``: adaptive wavelet rendering (Overbeck, Donner, Ramamoorthi 2009).
+"""``awr``: adaptive wavelet rendering (Overbeck, Donner, Ramamoorthi 2009,
+"Adaptive Wavelet Rendering").
 
-Paper: ``../shared/papers/awr-overbeck2009-adaptive-wavelet-rendering.txt``.
-Wavelet machinery (Appendix A filter banks, non-standard DWT, squared-filter
-variance propagation of Eq. 9-10) lives in ``core/wavelets.py``.
+The wavelet machinery (Appendix A filter banks, non-standard DWT, the
+squared-filter variance propagation of Eq. 9-10) lives in ``core/wavelets.py``.
+Measurements and design notes: docs/notes/awr.md.
 
 Reconstruction (Sec. 4.2)
 -------------------------
-``reconstruct``/``denoise``: DWT of the pixel means (Eq. 7), the error of every
-wavelet coefficient ``Delta = sqrt(<sigma^2(B), Psi^2>)`` (Eq. 10) by a full DWT
-of the per-pixel variance with the squared filters renormalised to sum to
-``2**-1/2`` (``recon_filter_sum``), the soft threshold
-``W = sign(W~) max(0, |W~| - c_s Delta)`` (Eq. 11, ``c_s = smoothing = 1``) and
+DWT of the pixel means (Eq. 7); the error of every wavelet coefficient,
+``Delta = sqrt(<sigma^2(B), Psi^2>)`` (Eq. 10), by a DWT of the per-pixel
+variance with the squared filters renormalised to sum to ``2**-1/2``
+(``recon_filter_sum``); the soft threshold
+``W = sign(W~) max(0, |W~| - c_s Delta)`` (Eq. 11, ``c_s = smoothing = 1``);
 synthesis.  The coarsest scale coefficients are kept as they are.
 
-Cycle spinning (``shifts``, our addition; ``shifts = 1`` is the paper exactly)
-------------------------------------------------------------------------------
-A decimated DWT is not translation invariant: which pixels share a coefficient
-depends on where the dyadic grid falls, so the thresholding error (the blur of
-a texture edge, the ringing the paper warns of at larger ``c_s``) changes with
-a one-pixel shift of the image.  The standard remedy for wavelet shrinkage
-(Coifman and Donoho 1995, "Translation-invariant de-noising") averages the
-reconstructions of translated copies.  ``reconstruct`` runs the paper's
-reconstruction unchanged (Eq. 7, 10, 11, synthesis) on the image translated
-by each of ``shifts`` offsets ``(dy, dx)`` (mean, variance and counts alike;
-the offset is ``dy`` rows and ``dx`` columns of half-sample symmetric
-extension prepended, cropped off after synthesis) and averages.  The offsets
-(``shift_set``) come in groups of four, each with every level-1 grid parity
-once and every level-2 residue once per axis; 16 is the whole 4 x 4 grid.
-Default 4.  Measured in the render loop at 16 spp on the six sample scenes
-(relMSE, shifts 1 -> 4): soft_shadows 9.14e-3 -> 7.08e-3 (uniform 7.29e-3 on
-the same samples), cornell 1.11e-2 -> 9.6e-3, dof 1.45e-2 -> 1.25e-2, glossy
-2.35e-2 -> 1.99e-2, motion_blur 1.69e-2 -> 1.43e-2, animated 7.5e-3 ->
-6.6e-3; 2 or 3 shifts leave soft_shadows at 7.4e-3, 16 shifts reach 7.0e-3
-and cost 4x more.  The gain holds at 8 and 32 spp on every scene (10-25 %).
-Cost: linear in ``shifts`` (reconstruction at 1024 x 1024 on two cores: 0.42 s
-per megapixel with 4, 0.19 s with 1; ``tools/awr_speed.py``).
+Cycle spinning (``shifts``, our addition; ``shifts = 1`` is the paper)
+----------------------------------------------------------------------
+A decimated DWT is not translation invariant, so the thresholding error
+(edge blur, ringing) changes with a one-pixel shift of the image.  As in
+Coifman and Donoho 1995 ("Translation-invariant de-noising") the paper's
+reconstruction runs unchanged on copies translated by ``shifts`` offsets
+``(dy, dx)`` (rows and columns of half-sample symmetric extension prepended,
+cropped after synthesis) and the results are averaged.  The offsets
+(:func:`shift_set`) come in groups of four with every level-1 grid parity
+once and every level-2 residue once per axis.  Default 4.
 
 Functional variance from sample subsets (Eq. 5, 6, 10)
 ------------------------------------------------------
-The paper keeps each pixel's min and max sample ``I_min, I_max``; Cycles gives
-neither, only ``K`` subset means, from which ``Buffers`` gives the per-sample
-variance ``s^2 = M2 / (k - 1)`` and the count ``N``.
+The paper keeps each pixel's min and max sample; Cycles gives only ``K``
+subset means, hence the per-sample variance ``s^2`` and the count ``N``.
 
-* Eq. 5 (sampler): the range is replaced by its expectation for ``N`` samples
-  of a normal distribution with that variance, ``I_max - I_min ~ d2(N) s``
-  (``d2`` is the expected range of ``N`` standard normal samples, the quality
-  control constant: exact by quadrature up to ``N = 64``, Blom's approximation
-  above; ``N < 2`` uses ``d2(2)``).  With ``I_max + I_min = 2 mu`` (symmetric
-  spread about the pixel mean ``mu``) the squared Mitchell contrast is
-  ``min(1, d2(N)^2 s^2 / (2 mu)^2)`` per colour channel, and the pixel takes
-  the largest of R, G, B (Mitchell tests each channel and refines when any one
-  exceeds its threshold).  The cap 1 is the contrast of samples that reach 0
-  (non-negative radiance has ``I_min >= 0``, so the contrast cannot exceed 1).
-  ``s = 0`` gives 0 and ``mu = 0, s > 0`` gives 1.  Eq. 6 then divides by
-  ``N``.  (The sampler only ranks coefficients against each other; using
-  ``s^2`` there instead changed relMSE by < 3 % on the sample scenes.)
-* Eq. 10 (reconstruction), ``recon_variance``: the paper calls the range "an
-  upper bound estimate of the pixel variance" and uses it because a min and a
-  max are all its renderer keeps; "there are many methods to approximate the
-  functional variance from a set of samples".  Our subsets give an estimate of
-  the functional variance itself, so by default (``"sample"``)
-  ``sigma^2(F) = s^2`` and by Eq. 6 ``sigma^2(B) = s^2 / N = Var(mean)``: the
-  threshold ``c_s Delta`` is then ``c_s`` standard deviations of each
-  coefficient, the "range of statistically valid values" of Sec. 4.2 read
-  literally.  ``"range"`` is the paper's bound, ``sigma^2(F) = d2(N)^2 s^2``
-  (threshold ~2 (N = 4) to ~3.5 (N = 16) standard deviations, growing with
-  ``N``).  Why the default is not the bound: measured on the six sample scenes
-  at 16 spp (``./cycles-adaptive render ... --method awr --awr-recon-variance
-  range``), the bound erases texture and defocus detail and loses to plain
-  uniform sampling on 5 of 6 scenes by 2-5x relMSE (dof 4.5e-2 vs uniform
-  1.6e-2); the sample estimate beats uniform on 5 of 6 (cornell 1.1e-2 vs
-  3.5e-2, soft_shadows 9.1e-3 vs 7.3e-3 is the exception: a pixel-scale
-  checkerboard).  The bound is still the stronger smoother of flat noise: a
-  constant image plus noise comes back 6x less noisy with it, 1.7x with the
-  sample estimate (tests/core/test_awr.py).  Note that Cycles' sample
-  subsets are consecutive blocks of one quasi-Monte Carlo sequence, so ``s^2``
-  already overestimates the error of the merged mean (true/estimated 0.5-0.8
-  on the sample scenes): the default threshold is ~1.2-1.4 true standard
-  deviations.
+* Eq. 5 (sampler): the range is its expectation for ``N`` normal samples,
+  ``I_max - I_min ~ d2(N) s`` (:func:`expected_range`), spread symmetrically
+  about the mean ``mu``: the squared Mitchell contrast is
+  ``min(1, d2(N)^2 s^2 / (2 mu)^2)``, the largest over R, G, B (Mitchell
+  refines when any channel exceeds its threshold); the cap 1 is the contrast
+  of samples reaching 0.  Eq. 6 divides by ``N``.
+* Eq. 10 (reconstruction, ``recon_variance``): the paper uses the range as
+  "an upper bound estimate of the pixel variance"; our subsets estimate the
+  functional variance itself, so by default (``"sample"``)
+  ``sigma^2(F) = s^2`` and ``sigma^2(B) = Var(mean)``: the threshold is
+  ``c_s`` standard deviations of each coefficient, Sec. 4.2's "range of
+  statistically valid values" read literally.  ``"range"`` is the paper's
+  bound ``d2(N)^2 s^2``, which erased texture in our measurements.
 
-Variance unknown (``k < 2``, variance ``+inf``) or non-finite: the per-pixel
-variance of the mean is replaced by the noise level of the image itself,
-Donoho's median estimator ``(median |W2_1| / 0.6745)^2`` of the finest diagonal
-wavelets, per channel, divided by the squared high-pass gain; such pixels are
-counted in ``info["unknown_variance_pixels"]``.  Pixels with no samples or
-non-finite means are filled from their neighbours (pull-push over a 2 x 2
-pyramid, value and variance) and counted in ``info["missing_pixels"]``.  Values
-are clamped to ``|x| <= 1e100`` and variances to ``<= 1e200`` so that squares of
-coefficients stay finite.
+Unknown variance (``k < 2``, ``+inf``, non-finite) is replaced by Donoho's
+median estimate ``(median |W2_1| / 0.6745)^2`` of the finest diagonal wavelets
+per channel, over the squared high-pass gain (``info["unknown_variance_pixels"]``).
+Pixels without samples or with non-finite means are filled by pull-push
+(``info["missing_pixels"]``).  Values are clamped to ``1e100`` and variances
+to ``1e200`` so that squares of coefficients stay finite.
 
 Error estimate (``MethodResult.error``)
 ---------------------------------------
-Of the untranslated transform.  With ``shifts > 1`` this is conservative: the
-averaged image's squared error is at most the mean of the translated copies'
-(squared error is convex), and every copy has the untranslated one's expected
-error up to the borders; a per-copy estimate would instead be biased by the
-copies' duplicated border rows.  The estimate is Stein's unbiased risk
-estimate of each soft-thresholded coefficient,
-``sigma_w^2 - 2 sigma_w^2 [|w| <= t] + min(w^2, t^2)`` with ``t = c_s Delta`` and
-``sigma_w^2`` the coefficient's actual variance ``<Var(mean), Psi^2>`` (natural
-squared filters; obtained from ``Delta^2`` by dividing out the renormalisation
-and, with ``recon_variance = "range"``, ``d2(N)^2``, the latter as its
-``Psi^2``-weighted mean over the support when ``N`` varies, which is exact
-where ``N`` is locally constant and saves one transform per channel), plus the variance of the untouched coarse coefficients,
-propagated to pixels by a synthesis with squared synthesis filters (coefficient
-errors taken as uncorrelated), clamped at 0 and averaged over RGB.
+Stein's unbiased risk estimate of each soft-thresholded coefficient of the
+untranslated transform, ``sigma_w^2 - 2 sigma_w^2 [|w| <= t] + min(w^2, t^2)``
+with ``t = c_s Delta`` and ``sigma_w^2 = <Var(mean), Psi^2>`` (natural squared
+filters: ``Delta^2`` with the renormalisation and, for ``"range"``, the
+``Psi^2``-weighted mean of ``d2(N)^2`` divided out), plus the variance of the
+untouched coarse coefficients, synthesised with squared synthesis filters
+(coefficients taken as uncorrelated), clamped at 0, averaged over RGB.  With
+``shifts > 1`` it is conservative: squared error is convex, so the average's
+is at most the copies' mean, and every copy has the untranslated one's
+expected error up to the borders.
 
-Adaptive sampling (Sec. 4.1) mapped to region renders
-----------------------------------------------------
-``sample_map`` plays Steps 2-4 of Fig. 4 for one render iteration of
-``budget`` samples (Step 1, the initial 4 spp, is the render loop's first pass):
-
-1. Per pixel ``sigma^2(B) = sigma^2_Mitchell(F) / N`` (Eq. 5, 6, above); the
-   sampler's intensity image is the luminance of the pixel means, scaled so its
-   median is ``sampler_intensity`` (0.5).  Eq. 8 subtracts squared intensities
-   from the unit-free contrast variance, so its balance depends on the intensity
-   scale; the paper renders display-range intensities, and fixing the median
-   makes the sampler invariant to exposure.
-2. Priorities of all scale coefficients of levels ``0..sample_levels`` (5):
-   ``P(S_k) = sigma^2(S_k) - (W~_k)^2`` (Eq. 8), ``sigma^2(S_k)`` from the squared
-   low-pass DWT renormalised to 1.05 (Eq. 9), ``(W~_k)^2`` the mean of the three
-   squared level-k wavelets at the same ``(i, j)`` (Eq. 7).  Pixels (level 0)
-   have no wavelets, so their priority is their variance (choice: the paper
-   defines wavelets only for ``k >= 1``).
-3. The highest-priority coefficients get ``batch_base * 2**k`` (64 x 2^k)
-   samples each until the round's share of the budget is spent (the last batch
-   is cut to fit).  Cycles cannot place single samples, so a batch becomes
-   expected per-pixel counts over the coefficient's support following the
-   separable profile ``|phi_k(x)| |phi_k(y)|`` (Fig. 5; the absolute value is
-   the importance density for the signed weight of Eq. 4; profile mass outside
-   the image is folded back by renormalising over the pixels inside).
-4. Priorities are updated between ``rounds`` (16) rounds with the *predicted*
-   variance ``sigma^2(F) / (N + planned)`` (the functional variance is a
-   per-sample property, the counts are known); the paper updates after every
-   popped coefficient, which one pop per round reproduces.  New wavelet values
-   arrive with the next iteration's samples.
-5. The expected counts become integers by ordered dithering (every pixel gets
-   the floor or ceiling of its expectation, the extra samples stratified over
-   8 x 8 blocks, pattern shifted each iteration: a stratified version of the
-   paper's random importance-sampled positions, which would leave Poisson
-   holes), corrected to sum to ``budget`` exactly.  The render loop turns the
-   map into region renders.
-
-If every priority is equal (no information, e.g. an all-black image) the budget
-is spread uniformly.  Unknown variance (``k < 2``) uses the fallback above.
-
-Observed behaviour: pixels (level 0) compete with their own variance while
-coarse coefficients compete with ``1.05^(2k)`` times an *average* variance minus
-``W~^2``, whose noise part is about the variance of the mean.  Where per-pixel
-variance estimates are heterogeneous (few subsets, uneven counts) the noisiest
-pixels outrank coarse coefficients and take 64-sample batches; where the
-contrast is uniformly high (binary visibility: penumbrae, defocus) coarse
-levels win as in the paper's Fig. 3.  ``sample_filter_sum`` trades between the
-two (higher: coarser).
+Adaptive sampling (Sec. 4.1, Steps 2-4 of Fig. 4 per render iteration)
+----------------------------------------------------------------------
+1. ``sigma^2(B) = sigma^2_Mitchell(F) / N`` (Eq. 5, 6); the intensity image is
+   the luminance scaled to median ``sampler_intensity``, since Eq. 8 subtracts
+   squared intensities from a unit-free variance (exposure invariance).
+2. ``P(S_k) = sigma^2(S_k) - (W~_k)^2`` (Eq. 8) for levels
+   ``0..sample_levels``; ``sigma^2(S_k)`` by Eq. 9 renormalised to 1.05,
+   ``(W~_k)^2`` the mean of the three squared level-k wavelets.  Pixels have
+   no wavelets (the paper defines them for ``k >= 1``): their priority is
+   their variance.
+3. The highest priorities get ``batch_base * 2**k`` samples each, spread as
+   expected per-pixel counts over the support with ``|phi_k(x)| |phi_k(y)|``
+   (Fig. 5; Cycles cannot place single samples), renormalised inside the
+   image.
+4. Priorities are updated ``rounds`` times per iteration with the predicted
+   variance ``sigma^2(F) / (N + planned)`` (the paper: after every pop).
+5. Ordered dithering (8 x 8 pattern, shifted per iteration) makes integer
+   counts summing exactly to ``budget``: stratified, where the paper's random
+   positions would leave Poisson holes.  Equal priorities give a uniform map.
 
 Precision (``precision``, our addition)
 ---------------------------------------
-The transforms run in float32 by default (``"float64"``: float64 throughout);
-the input, the average over shifts and the output stay float64.  The soft
-threshold is applied as a correction, ``soft(w, t) = w - clip(w, -t, t)``, so
-each plane is reconstructed as ``img - synthesis(clip(W, -t, t))`` (perfect
-reconstruction; the coarsest scale coefficients are not touched, so they are
-not in the correction): the float64 input minus a synthesis of coefficients no
-larger than their thresholds.  Rounding enters in three places, each bounded:
+Transforms run in float32 by default (about half the memory traffic, and
+blocked sgemm filters along x in ``core.wavelets``); input, shift average
+and output stay float64, and values above ``1e25`` or variances above
+``1e30`` switch to float64.  The soft threshold is applied as a correction,
+``soft(w, t) = w - clip(w, -t, t)``, so each plane is
+``img - synthesis(clip(W, -t, t))``: the float64 input is exact where nothing
+is clipped, and a coefficient's rounding error is at most twice its
+threshold (the variance transform sums positive terms: a few ulp).
 
-* the analysis: a coefficient errs by ~1e-7 of the filter-weighted input in
-  its support, so its clipped value by ``min(that, 2 t)``: at most twice its
-  threshold, and nothing where the coefficient is beyond ``t`` by more than
-  that rounding;
-* the variance transform: every squared tap is positive, so each ``Delta^2``
-  is exact to a few float32 ulp (no cancellation);
-* the correction's synthesis: ~1e-7 of the correction, itself at most the
-  thresholds.
-
-Where no coefficient is clipped the input comes back exactly in either
-precision.  Measured (tests/core/test_awr.py): on a piecewise-smooth image the
-two precisions differ by under 1e-4 of the smallest noise sigma; next to a
-noiseless 1e4 emitter and a 5e3 line over a dark region with sigma = 5e-3
-(dynamic range 2e6) the dark pixels differ by 0.05 sigma (one shift) and 0.02
-sigma (four shifts).  The error estimate can differ more there, up to 30 % in
-a few pixels beside the line: SURE's indicator ``|w| <= t`` flips for
-coefficients within float32 rounding of their threshold.  Means above 1e25 or
-variances above 1e30 (float32 overflows at 3.4e38) switch to float64.
-Why float32: it halves the memory traffic and lets the filters along x (the
-contiguous axis, where the strided contraction cannot vectorise) run as
-blocked single-precision matrix products (``core.wavelets``).
-``tools/awr_speed.py --precision float32,float64`` (4 shifts, two cores):
-1024 x 1024 0.42 against 0.49 s per megapixel in one run, 0.44 against 0.66 in
-another, and 139 against 224 bytes per pixel traced; 512 x 512 0.55 against
-0.82-1.00 s/MP.  (The rest of the speed-up
-of this version, 1.9-2.5x in all from 0.73 to 0.37 s/MP in one interleaved
-run, benchmark 1.05 -> 0.43 s/MP, is in either precision: fewer full-size
-temporaries, and strided views that hold the GIL for less time, so that the
-two transform threads overlap.)
-
-Cost: reconstruction is 3 transforms per channel and shift (analysis,
-squared-filter variance analysis, synthesis of the correction) plus one
-squared synthesis for the error, linear in pixels and in ``shifts``; channels
-and shifts run in parallel threads (``threads``), at most ``threads + 3`` jobs
-ahead, so peak memory does not grow with ``shifts``.
+Cost: 3 transforms per channel and shift plus one squared synthesis for the
+error, linear in pixels and ``shifts``; channels and shifts run in threads
+(``threads``), at most ``threads + 3`` jobs ahead, so memory does not grow
+with ``shifts``.
 """
 from __future__ import annotations
 
@@ -213,9 +113,11 @@ import numpy as np
 
 from . import wavelets as wv
 from .buffers import Buffers, LUMA
-from .method import MethodResult, allocate, param
+from .method import MethodResult, allocate, param, params_from_dict
 
+NAME = "awr"
 PASSES: tuple = ()
+ADAPTIVE = True
 #: ``sample_map`` does not read the reconstruction (Eq. 8 uses the noisy pixel
 #: means), so the render loop skips the per-iteration reconstruction
 SAMPLER_USES_RESULT = False
@@ -620,9 +522,7 @@ def _bounded_map(pool, fn, jobs, ahead: int):
 
 #: below this many pixels ``threads = 0`` runs the transforms in one thread:
 #: per-call overhead dominates small transforms and threads contend for the
-#: GIL (4 shifts, float32, two cores, two threads against one: 128 x 128 0.065
-#: against 0.040 s, 256 x 256 0.087 against 0.063 s, 512 x 512 0.130 against
-#: 0.138 s, 1024 x 1024 0.33 against 0.44 s)
+#: GIL (timings: docs/notes/awr.md)
 _THREAD_MIN_PIXELS = 1 << 19
 
 
@@ -811,21 +711,24 @@ def reconstruct(buf: Buffers, params: Params | None = None) -> MethodResult:
 
 
 def denoise(color: np.ndarray, color_var: np.ndarray, features: dict | None = None,
-            params: Params | None = None, spp=16) -> MethodResult:
+            feature_var: dict | None = None, n=None,
+            params: Params | dict | None = None) -> MethodResult:
     """Wavelet reconstruction of a uniform render alone (the paper's Fig. 10b).
 
     Parameters
     ----------
     color : (H, W, 3) pixel means
     color_var : (H, W, 3) variance of the pixel means (``+inf``: unknown)
-    features : ignored (AWR uses no feature passes)
-    params : Params
-    spp : samples per pixel of the render (scalar or (H, W)); sets ``d2(N)`` of
-        the range estimate (``recon_variance = "range"``).  Default 16 when unknown.
+    features, feature_var : ignored (AWR uses no feature passes)
+    n : samples per pixel of the render (scalar or (H, W)); sets ``d2(N)`` of
+        the range estimate (``recon_variance = "range"``).  None: 16.
+    params : Params or dict of its fields
     """
+    if isinstance(params, dict):
+        params = params_from_dict(Params, params)
     color = np.asarray(color, np.float64)
     return wavelet_reconstruct(color, color_var, np.broadcast_to(
-        np.asarray(spp, np.float64), color.shape[:2]), params)
+        np.asarray(16 if n is None else n, np.float64), color.shape[:2]), params)
 
 
 # ----------------------------------------------------------------------------

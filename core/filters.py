@@ -17,6 +17,7 @@ __all__ = [
     "box_count",
     "box_sum",
     "box_mean",
+    "box_mean_finite",
     "guided_filter",
     "guided_filter_mean",
     "nlm_pixel_distance",
@@ -185,6 +186,23 @@ def box_mean(x: np.ndarray, r: int) -> np.ndarray:
     if x.ndim == 3:
         cnt = cnt[..., None]
     return box_sum(x, r) / cnt
+
+
+def box_mean_finite(x: np.ndarray, r: int) -> np.ndarray:
+    """Mean over the finite entries of each clipped (2r+1)^2 window.
+
+    ``box_sum`` of the finite values over ``box_sum`` of their count; NaN
+    where a window holds no finite entry.  For maps with unknown pixels (NaN),
+    e.g. the oracle's pooled true error.
+
+    x : (H, W) or (H, W, C) -> same shape, float64
+    """
+    x = np.asarray(x, np.float64)
+    ok = np.isfinite(x)
+    num = box_sum(np.where(ok, x, 0.0), r)
+    den = box_sum(ok.astype(np.float64), r)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return np.where(den > 0, num / np.where(den > 0, den, 1.0), np.nan)
 
 
 # ----------------------------------------------------------------- guided filter

@@ -59,11 +59,11 @@ reconstruction's fast path (``core.awr``, "Precision").  Each 1D filter is one
 contraction over a strided window of the symmetrically extended signal; along
 the last axis of a 2D float32 array, where that contraction cannot vectorise
 over rows, it is a blocked matrix product instead (16 outputs per block from a
-window of 2 x 16 + K - 2 inputs: sgemm, about 2x the multiply-adds but 2-4x
-faster; at most 128 rows per product, below OpenBLAS's own threading, whose
-spinning threads would fight the caller's).  A lifting implementation of the
-CDF 9/7 and LeGall 5/3 transforms was measured and dropped: in numpy it was
-10-20 % slower than these filters (more, smaller array operations).
+window of 2 x 16 + K - 2 inputs: sgemm, more multiply-adds but faster; at most
+128 rows per product, below OpenBLAS's own threading, whose spinning threads
+would fight the caller's).  Filters, not lifting: lifting was slower in numpy
+(more, smaller array operations).
+Measurements and design notes: docs/notes/awr.md.
 """
 from __future__ import annotations
 
@@ -299,14 +299,13 @@ def _sl(axis: int, ndim: int, s: slice) -> tuple:
     return tuple(idx)
 
 
-#: outputs per filter and block of the matrix products (``_blocked_filter``);
-#: 16 and 32 measured best at 512^2 .. 2048^2 (8: 1.7x slower, 128: 2x)
+#: outputs per filter and block of the matrix products (``_blocked_filter``;
+#: block sizes compared in docs/notes/awr.md)
 _BLOCK = 16
 #: rows per matrix product: keeps every product below OpenBLAS's threading
 #: thresholds (gemm 4 * 65536 multiply-adds, gemv 9216 entries, the latter for
-#: one-column remainder blocks).  Its threads spin in the kernel while they
-#: wait and fight the reconstruction's own thread pool (two cores, 1024^2, 4
-#: shifts: 1.0 s with them, 0.55 s without)
+#: one-column remainder blocks), whose threads spin in the kernel while they
+#: wait and fight the reconstruction's own thread pool
 _GEMM_ROWS = 128
 _BLOCK_MATS: dict = {}
 
@@ -314,9 +313,9 @@ _BLOCK_MATS: dict = {}
 def _window(root: np.ndarray, offset: int, shape: tuple, strides: tuple,
             writeable: bool = False) -> np.ndarray:
     """Strided view of the C-contiguous ``root`` starting ``offset`` bytes in:
-    what ``numpy.lib.stride_tricks.as_strided`` makes, at a fifth of its cost
-    per call, which counts here (thousands of calls per reconstruction, each
-    holding the GIL).  numpy checks the view stays inside ``root``."""
+    what ``numpy.lib.stride_tricks.as_strided`` makes, at less cost per call,
+    which counts here (thousands of calls per reconstruction, each holding the
+    GIL).  numpy checks the view stays inside ``root``."""
     if not root.flags.c_contiguous:
         raise ValueError("window root must be C-contiguous")
     v = np.ndarray(shape, root.dtype, buffer=root, offset=offset, strides=strides)
@@ -394,8 +393,8 @@ def _blocked_filter(xe: np.ndarray, start: int, fulls: tuple, out: np.ndarray) -
 
     Along the contiguous axis the strided-window contraction cannot vectorise
     over rows (its inner loop is the ``K`` taps); this does, at about 2x the
-    multiply-adds (1024^2 float32, one thread: 1.7 ms against 3.8-6.8 ms per
-    filter).  Same sums as the contraction, in a different rounding order."""
+    multiply-adds (timings: docs/notes/awr.md).  Same sums as the
+    contraction, in a different rounding order."""
     mat = _block_matrix(fulls, xe.dtype)
     step, k = 2 // len(fulls), len(fulls[0])
     cols = mat.shape[1]

@@ -183,7 +183,7 @@ def test_matches_independent_haar_implementation_with_pywavelets():
     n = 16
     for mode, rvar in (("range", awr.expected_range(n) ** 2 * var), ("sample", var)):
         params = awr.Params(wavelet="haar", recon_variance=mode, shifts=1, precision="float64")
-        res = awr.denoise(color, var, {}, params, spp=n)
+        res = awr.denoise(color, var, {}, params=params, n=n)
         np.testing.assert_allclose(res.image, _pywt_haar_soft(color, rvar), atol=1e-12)
 
 
@@ -197,7 +197,7 @@ def test_correction_form_equals_synthesis_of_the_soft_thresholded_pyramid(wavele
     var = rng.uniform(0.001, 0.01, (h, w, 3))
     color = truth + np.sqrt(var) * rng.standard_normal(truth.shape)
     params = awr.Params(wavelet=wavelet, shifts=1, precision="float64")
-    got = awr.denoise(color, var, {}, params, spp=16).image
+    got = awr.denoise(color, var, {}, params=params, n=16).image
     r = params.recon_filter_sum
     for c in range(3):
         pyr = wv.dwt2(color[..., c], wavelet)
@@ -250,18 +250,18 @@ def test_cycle_spinning_is_the_mean_of_translated_single_transforms(shifts):
     var = rng.uniform(0.0005, 0.003, (h, w, 3))
     n = rng.integers(4, 40, (h, w)).astype(float)
     params = awr.Params(shifts=shifts)
-    got = awr.denoise(color, var, {}, params, spp=n)
+    got = awr.denoise(color, var, {}, params=params, n=n)
     acc = np.zeros_like(color)
     for dy, dx in awr.shift_set(shifts):
         pad = ((dy, 0), (dx, 0))
         one = awr.denoise(np.pad(color, pad + ((0, 0),), mode="symmetric"),
                           np.pad(var, pad + ((0, 0),), mode="symmetric"), {},
-                          awr.Params(shifts=1), spp=np.pad(n, pad, mode="symmetric"))
+                          params=awr.Params(shifts=1), n=np.pad(n, pad, mode="symmetric"))
         acc += one.image[dy:, dx:]
     np.testing.assert_allclose(got.image, acc / shifts, atol=1e-12)
     # the error estimate is the untranslated transform's
-    np.testing.assert_allclose(got.error, awr.denoise(color, var, {}, awr.Params(shifts=1),
-                                                      spp=n).error, rtol=1e-12)
+    np.testing.assert_allclose(got.error, awr.denoise(color, var, {}, params=awr.Params(shifts=1),
+                                                      n=n).error, rtol=1e-12)
     assert got.info["shifts"] == shifts
 
 
@@ -273,7 +273,7 @@ def test_float32_precision_matches_float64(shifts):
     truth = piecewise_smooth(70, 90)
     var = rng.uniform(0.0005, 0.003, truth.shape)
     color = truth + np.sqrt(var) * rng.standard_normal(truth.shape)
-    r64, r32 = (awr.denoise(color, var, {}, awr.Params(shifts=shifts, precision=p), spp=16)
+    r64, r32 = (awr.denoise(color, var, {}, params=awr.Params(shifts=shifts, precision=p), n=16)
                 for p in ("float64", "float32"))
     assert r64.image.dtype == r32.image.dtype == np.float64
     assert np.abs(r32.image - r64.image).max() < 1e-4 * np.sqrt(var.min())
@@ -294,7 +294,7 @@ def test_float32_precision_near_bright_noiseless_emitters():
     truth[70, 10:80] = 5e3
     var[truth > 1] = 0.0
     color = truth + np.sqrt(var) * rng.standard_normal(truth.shape)
-    r64, r32 = (awr.denoise(color, var, {}, awr.Params(precision=p), spp=16)
+    r64, r32 = (awr.denoise(color, var, {}, params=awr.Params(precision=p), n=16)
                 for p in ("float64", "float32"))
     dark = truth < 1
     assert np.abs(r32.image - r64.image)[dark].max() < 0.1 * 0.005
@@ -308,8 +308,8 @@ def test_values_beyond_float32_range_use_float64():
     rng = np.random.default_rng(9)
     color = 1e30 * (1 + 0.1 * rng.standard_normal((20, 24, 3)))
     var = np.full(color.shape, 1e40)
-    a = awr.denoise(color, var, {}, awr.Params(), spp=16)
-    b = awr.denoise(color, var, {}, awr.Params(precision="float64"), spp=16)
+    a = awr.denoise(color, var, {}, params=awr.Params(), n=16)
+    b = awr.denoise(color, var, {}, params=awr.Params(precision="float64"), n=16)
     assert np.isfinite(a.image).all() and np.isfinite(a.error).all()
     assert np.array_equal(a.image, b.image) and np.array_equal(a.error, b.error)
 
@@ -317,7 +317,7 @@ def test_values_beyond_float32_range_use_float64():
 @pytest.mark.parametrize("precision", ["float32", "float64"])
 def test_zero_variance_input_is_exact_in_both_precisions(precision):
     truth = np.random.default_rng(3).uniform(0, 1e5, (19, 23, 3))
-    res = awr.denoise(truth, np.zeros(truth.shape), {}, awr.Params(precision=precision), spp=8)
+    res = awr.denoise(truth, np.zeros(truth.shape), {}, params=awr.Params(precision=precision), n=8)
     assert np.array_equal(res.image, truth)
 
 
@@ -335,7 +335,7 @@ def test_cycle_spinning_lowers_the_error():
 def test_cycle_spinning_on_tiny_images(shape):
     rng = np.random.default_rng(2)
     color = rng.uniform(0, 1, shape + (3,))
-    res = awr.denoise(color, np.full(color.shape, 0.01), {}, awr.Params(shifts=16))
+    res = awr.denoise(color, np.full(color.shape, 0.01), {}, params=awr.Params(shifts=16))
     assert res.image.shape == color.shape and np.isfinite(res.image).all()
     assert res.error.shape == shape and np.isfinite(res.error).all()
 
@@ -344,7 +344,7 @@ def test_denoise_equals_reconstruct_on_the_same_statistics():
     truth = piecewise_smooth(24, 20)
     buf = gaussian_buffers(truth, 0.2, k=3, per=4)
     a = awr.reconstruct(buf)
-    b = awr.denoise(buf.color.mean, buf.variance_of_mean(), {}, spp=buf.n)
+    b = awr.denoise(buf.color.mean, buf.variance_of_mean(), {}, n=buf.n)
     np.testing.assert_allclose(a.image, b.image, atol=1e-12)
     np.testing.assert_allclose(a.error, b.error, atol=1e-15)
 
@@ -373,7 +373,7 @@ def test_error_estimate_without_smoothing_is_the_pixel_variance():
     var = np.broadcast_to([0.01, 0.02, 0.04], color.shape)
     for precision, rtol in (("float64", 1e-9), ("float32", 1e-5)):
         params = awr.Params(smoothing=0.0, wavelet="haar", precision=precision)
-        res = awr.denoise(color, var, {}, params, spp=8)
+        res = awr.denoise(color, var, {}, params=params, n=8)
         # nothing thresholded: SURE = coefficient variance; Haar is orthonormal,
         # so the squared synthesis gives back the pixel variance exactly
         assert np.array_equal(res.image, color)

@@ -4,9 +4,9 @@ import pytest
 from hypothesis import given, settings, strategies as st
 from hypothesis.extra import numpy as hnp
 
-from core.filters import (box_count, box_mean, box_sum, guided_filter, guided_filter_mean,
-                          nlm_center_weights, nlm_filter, nlm_pixel_distance, sobel_gradient,
-                          window_offsets)
+from core.filters import (box_count, box_mean, box_mean_finite, box_sum, guided_filter,
+                          guided_filter_mean, nlm_center_weights, nlm_filter, nlm_pixel_distance,
+                          sobel_gradient, window_offsets)
 
 D_CLIP = 1e6
 
@@ -119,6 +119,26 @@ def test_box_sum_huge_value_does_not_spoil_other_windows(r):
     s = box_sum(x, r)
     far = np.arange(120) > 2 + r
     np.testing.assert_array_equal(s[:, far], direct_box_sum(np.ones((3, 120)), r)[:, far])
+
+
+@pytest.mark.parametrize("shape", [(1, 1), (5, 7), (9, 4, 2)])
+@pytest.mark.parametrize("r", [0, 1, 2, 20])
+def test_box_mean_finite_is_the_mean_over_finite_entries(shape, r):
+    rng = np.random.default_rng(3)
+    x = rng.normal(size=shape)
+    x[rng.random(shape) < 0.3] = np.nan
+    x.flat[0] = np.inf
+    ok = np.isfinite(x)
+    num = direct_box_sum(np.where(ok, x, 0.0), r)
+    den = direct_box_sum(ok.astype(float), r)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        want = np.where(den > 0, num / den, np.nan)
+    got = box_mean_finite(x, r)
+    np.testing.assert_array_equal(np.isnan(got), den == 0)
+    np.testing.assert_allclose(got, want, rtol=1e-12, atol=1e-14)
+    # no NaN: the plain box mean
+    y = np.where(ok, x, 0.0)
+    np.testing.assert_allclose(box_mean_finite(y, r), box_mean(y, r), rtol=1e-12, atol=1e-14)
 
 
 # --------------------------------------------------------------- guided filter

@@ -4,7 +4,7 @@ import pytest
 
 from cycles_adaptive.core import oracle, uniform, var
 from cycles_adaptive.core.buffers import Buffers
-from cycles_adaptive.core.method import MethodResult
+from cycles_adaptive.core.method import Method, MethodResult
 from cycles_adaptive.core.pipeline import AdaptiveRun, Options
 
 
@@ -51,7 +51,7 @@ def test_map_follows_error_and_sample_count():
     img2 = ref + 0.1
     n2 = np.full((16, 16), 4.0)
     n2[:, 8:] = 64.0
-    c2 = oracle.oracle_map(img2, ref, n2, 10000, exponent=1.0, radius=0)
+    c2 = oracle.oracle_map(img2, ref, n2, 10000, dimension=None, radius=0)
     assert c2[:, :8].sum() > 4 * c2[:, 8:].sum()
 
 
@@ -103,9 +103,9 @@ def test_size_mismatch_is_a_clear_error():
 
 def test_gain_exponent_from_the_model_dimension():
     assert oracle.gain_exponent(MethodResult(np.zeros((1, 1, 3)), np.zeros((1, 1)), {})) == 1.0
-    r = MethodResult(np.zeros((1, 1, 3)), np.zeros((1, 1)), {"mean_rank": 4.0})
+    r = MethodResult(np.zeros((1, 1, 3)), np.zeros((1, 1)), {}, dimension=4.0)  # LP: mean rank
     assert oracle.gain_exponent(r) == pytest.approx(0.5)
-    r = MethodResult(np.zeros((1, 1, 3)), np.zeros((1, 1)), {"active_features": 9})
+    r = MethodResult(np.zeros((1, 1, 3)), np.zeros((1, 1)), {}, dimension=9)  # RHF: features
     assert oracle.gain_exponent(r) == pytest.approx(4 / 13)
 
 
@@ -117,8 +117,7 @@ def test_wrapper_drives_the_real_loop(fake_executor):
     truth[:, 16:] = 1.0  # bright half: the fake noise is relative, so more absolute error...
     ex = fake_executor(truth)
     run = AdaptiveRun(ex, Options(method="var", spp=16, initial_spp=4, subsets=4, min_task_size=4,
-                                  task_cost=0.0))
-    run.method = oracle.OracleMethod(var, truth)
+                                  task_cost=0.0), method=oracle.OracleMethod(var, truth))
     for _ in run.steps():
         pass
     assert abs(run.samples_rendered - 16 * h * w) <= 0.01 * 16 * h * w
@@ -137,3 +136,28 @@ def test_wrapper_refuses_a_reference_of_another_size():
         m.sample_map(b, uniform.reconstruct(b), 10)
     with pytest.raises(ValueError):
         oracle.OracleMethod(uniform, np.ones((8, 8)))
+
+
+def test_wrapper_declares_the_method_contract():
+    """Every member of the Method protocol is declared, the wrapped method's
+    except NAME and SAMPLER_USES_RESULT (the map needs the reconstruction)."""
+    m = oracle.OracleMethod(var, np.ones((4, 4, 3)))
+    assert isinstance(m, Method)
+    assert m.NAME == "oracle-" + var.NAME
+    assert m.PASSES == tuple(var.PASSES) and m.Params is var.Params
+    assert m.ADAPTIVE == var.ADAPTIVE and m.SAMPLER_USES_RESULT is True
+    assert oracle.OracleMethod(var, np.ones((4, 4, 3)), name="mine").NAME == "mine"
+
+
+def test_map_gain_follows_the_model_dimension():
+    """The map is the pooled true error times sampling_gain's n^(-4/(d+4))."""
+    ref = _scene(8, 8)
+    img = ref + 0.1
+    n = np.arange(1.0, 65.0).reshape(8, 8)
+    e = oracle.true_relative_error(img, ref)
+    for d in (None, 0.0, 4.0, 9.0):
+        w = oracle.oracle_weights(img, ref, n, dimension=d, radius=0)
+        p = 1.0 if d is None else 4.0 / (d + 4.0)
+        np.testing.assert_allclose(w, e * n ** -p, rtol=1e-14)
+    bad = MethodResult(np.zeros((1, 1, 3)), np.zeros((1, 1)), {}, dimension=float("nan"))
+    assert oracle.model_dimension(bad) is None and oracle.gain_exponent(bad) == 1.0
