@@ -1,5 +1,5 @@
 """Forward reprojection of accumulated samples between animation frames
-(Schalk 2018, thesis Sec. 3.2-3.3, Algorithm 2).
+(Schalk 2018, "Reprojection for adaptive sampling", thesis Sec. 3.2-3.3).
 
 Each pixel of the previous frame ``t-1`` keeps its accumulated statistics
 (``Buffers``: mean, between-group M2, samples n, groups k, feature passes).  Its
@@ -7,19 +7,22 @@ stored first intersection point (Cycles' Position pass) is projected into the
 camera of frame ``t``; where the thesis' validations pass, the statistics are
 copied ("each pixel is copied to a new assigned pixel depending on the camera
 matrix", Sec. 3.2) and Chan-merged into the new frame.  :func:`reproject` does
-this for a whole frame (vectorised, chunked over source pixels),
-:func:`sample_map` is Algorithm 2's sampler (pixels that were not reprojected
-first), :func:`backward_coordinates` maps current pixels back into the previous
-frame (for ``core.temporal``'s search window).
+this for a whole frame (vectorised, chunked over source pixels);
+:func:`backward_coordinates` maps current pixels back into the previous frame
+(for ``core.temporal``'s search window).  This module is the geometry only:
+Algorithm 2's sampler, which gives the pixels that were not reprojected
+priority, is ``core.var.REPROJECT``.
 
 Conventions (what the frame loop passes)
 ----------------------------------------
-Cameras (:class:`Camera`): ``view`` is the 4x4 world-to-camera matrix (Blender:
+Cameras (:class:`Camera`, :meth:`Camera.from_render` from the executor's
+record): ``view`` is the 4x4 world-to-camera matrix (Blender:
 ``camera.matrix_world.inverted()``; the camera looks down -Z), ``proj`` the 4x4
-camera-to-clip matrix (Blender: ``camera.calc_matrix_camera(depsgraph, x=W,
-y=H, scale_x=..., scale_y=...)``).  NDC = clip.xyz / clip.w, x and y in
-[-1, 1]; a point lies at continuous pixel coordinates ``col = (x + 1) / 2 * W``,
-``row = (1 - y) / 2 * H`` (row 0 at the top) and in pixel
+camera-to-clip matrix of the rendered region (Blender's
+``calc_matrix_camera(depsgraph, x=W, y=H, scale_x=..., scale_y=...)``, cropped
+to a render border by :func:`crop_projection`).  NDC = clip.xyz / clip.w, x and
+y in [-1, 1]; a point lies at continuous pixel coordinates ``col = (x + 1) / 2
+* W``, ``row = (1 - y) / 2 * H`` (row 0 at the top) and in pixel
 ``(floor(row), floor(col))``.  ``position`` is the camera's world position (by
 default the translation of ``inv(view)``).  Perspective and orthographic
 projections work; panoramic cameras cannot be written as a matrix and are not
@@ -33,85 +36,43 @@ Every feature pass of ``current`` must also be in ``prev`` (the output Buffers
 carries the same passes as ``current``, so ``current.merge(result.buffers)``
 works).  A missing Position pass in ``prev`` or ``current`` raises
 ``ValueError`` (old outputs rendered without it cannot be reprojected).
+Background (no surface hit) is ``core.buffers.is_background``.
 
-Validation (each previous pixel gets the first reason that applies; the counts
-are in ``Reprojection.counts``)
---------------------------------------------------------------------------
-``empty``          no samples, or non-finite statistics.
-``no_position``    non-finite position (NaN/Inf) or depth.
-``background``     no surface was hit (Position exactly (0, 0, 0): Cycles writes
-                   nothing there; with a depth pass also depth 0 or >= 1e9) and
-                   ``Params.background`` is off.  With it on (default) a
-                   background pixel is reprojected *by direction*: the
-                   environment is at infinity, so the direction of the pixel's
-                   centre ray (a point with homogeneous w = 0) is projected, and
-                   the target must be background too.  Its radiance depends on
-                   the direction only, so there is no view-dependence error.
-                   (Orthographic cameras map every direction to w = 0: such
-                   background pixels fail as ``outside``.)
-``inconsistent``   the pixel is not a single clean first hit: its mean position
-                   disagrees with its mean depth (``| |P - C| - depth | >
-                   consistency_tolerance * |P - C|``, tested against the ray
-                   length and the camera z-depth).  This catches pixels that
-                   mix surfaces or background at an edge (the Position pass is
-                   a pixel mean, so a half-covered pixel's position is pulled
-                   towards the origin) and Cycles' denoising depth that keeps
-                   adding path length through specular bounces (mirrors,
-                   glass): the aliasing case of Sec. 3.2.2 and part of "never
-                   reproject specular".  Skipped without a depth pass.
-``outside``        (a) behind the new camera or outside the screen.
-``occluded``       (b) the thesis casts a ray from the new camera towards the
-                   stored point and requires the hit within epsilon of it.  The
-                   current frame's initial pass gives that hit, averaged over
-                   the target pixel: with ``d = |P - C_t|`` and ``s`` the
-                   pixel's footprint at that distance (one pixel's width in world
-                   units, from the projection), the test is
-                   ``|P - W_t(target)| <= occlusion_tolerance * d +
-                   occlusion_pixels * s``.  The footprint term admits the
-                   sub-pixel offset (at most 0.71 pixel) between the projected
-                   point and the target's centroid on surfaces up to ~45 degrees
-                   from facing (defaults 1 % and 1 pixel); an occluder nearer
-                   to the surface than this tolerance is not detected.  A target without samples or position, or a
-                   background target for a surface source (and vice versa),
-                   counts as occluded.  Where the four pixel centres around the
-                   projected point are known surface hits, the point is also
-                   compared with their bilinear interpolation (the hit of the
-                   ray through the projected sub-pixel position, to second
-                   order), and passes if either comparison does: this keeps
-                   grazing surfaces valid without widening the tolerance.
-``object_index``   (d) |index_prev - index_target| > ``object_index_tolerance``:
-                   the object under the pixel changed (moving objects, if the
-                   scene gives them pass indices; Cycles' default index is 0).
-                   Skipped when either frame lacks the pass.
-``specular``       the pixel is mostly view-dependent: ``lum(glossy +
-                   transmission) / lum(combined) > max_specular_share`` in the
-                   previous frame or at the target in the current one.  The
-                   thesis never reprojects specular (alpha < 0.01) or
-                   refractive materials; Cycles has no roughness pass, so
-                   "mostly specular or refractive" is read from the light passes.
-``view_dependence``(c) the Eq. 15 error bound exceeds ``max_error`` (1/256),
-                   see below.
-``changed``        (addition, Sec. 3 assumes a static scene and restarts on any
-                   change) the reprojected mean and the current frame's own
-                   initial-pass mean at the target differ beyond noise:
-                   ``|m_prev - m_t| > changed_sigma * s * sqrt(1/n_prev + 1/n_t)
-                   + max_error`` in some channel, with the per-sample variance
-                   pooled over both frames, ``s^2 = (M2_prev + M2_t) /
-                   (k_prev - 1 + k_t - 1)`` (unchanged pixels sample the same
-                   integrand; pooling gives the variance estimate more degrees
-                   of freedom than the initial pass alone, so fewer false
-                   alarms).  This catches what no geometric test sees: moving
-                   shadows and lights, animated textures -- but per pixel, so
-                   only changes large against the initial pass's noise (with
-                   5 sigma and ~30 % per-sample noise at 4 spp, changes of more
-                   than ~80 %).  Skipped where no variance exists (one group
-                   in both frames); ``changed_sigma = 0`` turns it off.  Its
-                   false-alarm rate on unchanged pixels is that of a
-                   t-test with ``k_prev + k_t - 2`` degrees of freedom at 5 sigma
-                   (< 0.1 % per channel from 10 on), costing only efficiency.
-``camera_cut``     valid, but fewer than ``min_valid_fraction`` of the new frame's
-                   pixels received anything: the frame is treated as a cut and
-                   renders fresh (nothing is reprojected, never a smear).
+Validation
+----------
+Each previous pixel gets the first reason that applies, in the order of
+:data:`REASONS` (counts in ``Reprojection.counts``); the function named
+applies the test and documents it:
+
+``empty``            no samples, or non-finite statistics (:func:`_empty_statistics`).
+``no_position``      non-finite position or depth (:func:`_source_points`).
+``background``       no surface was hit and ``Params.background`` is off.  With
+                     it on (default) background pixels are reprojected *by
+                     direction* (:func:`_clip_coordinates`) and their target
+                     must be background too.
+``inconsistent``     position and depth disagree: a pixel mixing surfaces at an
+                     edge (Sec. 3.2.2's aliasing) or a specular chain
+                     (:func:`_inconsistent`); skipped without a depth pass.
+``outside``          (a) behind the new camera or off its screen (:func:`_inside_frame`).
+``occluded``         (b) the stored point is not the new frame's first hit at
+                     the target, within ``occlusion_tolerance * d +
+                     occlusion_pixels * footprint`` (:func:`_occluded`).
+``object_index``     (d) the object under the pixel changed (:func:`_object_changed`);
+                     skipped when either frame lacks the pass.
+``specular``         mostly view-dependent light, ``lum(glossy + transmission) /
+                     lum(combined) > max_specular_share`` in either frame: the
+                     thesis never reprojects specular or refractive materials
+                     (:func:`_specular_share`).
+``view_dependence``  (c) the Eq. 15 error bound exceeds ``max_error`` (1/256)
+                     (:func:`_view_dependence_error`).
+``changed``          (addition: Sec. 3 assumes a static scene) the reprojected
+                     mean and the new frame's own samples differ by more than
+                     ``changed_sigma`` (5) standard errors (:func:`_radiance_changed`);
+                     ``changed_sigma = 0`` turns it off.
+``camera_cut``       valid, but fewer than ``min_valid_fraction`` of the new
+                     frame's pixels received anything: the frame is treated as
+                     a cut and renders fresh (nothing is reprojected, never a
+                     smear).
 
 The view-dependence bound (c), Eq. 15
 -------------------------------------
@@ -127,23 +88,18 @@ frame's initial-pass value at the target, ``sigma`` their standard errors and
   a static camera or a pure rotation) ``f_r(V_t) = f_r(V_{t-1})`` and
   ``eps = 0`` exactly;
 * otherwise ``eps <= min(|S_t - S_p| + z sqrt(sigma_t^2 + sigma_p^2),
-  max(S_p + z sigma_p, S_t + z sigma_t))``.  The first term is a direct
-  (upper-confidence) estimate of Eq. 15's difference measured by the renderer
-  itself; the second holds for every BRDF because both radiances are >= 0 (a
-  pixel whose view-dependent light is below 1/256 in both views cannot change
-  by more).  Glossy and transmission are bounded separately and added
-  (triangle inequality); the channel maximum is compared with ``max_error``.
+  max(S_p + z sigma_p, S_t + z sigma_t))``: a direct (upper-confidence)
+  estimate of Eq. 15's difference measured by the renderer itself, or, for
+  every BRDF since both radiances are >= 0, the larger radiance.  Glossy and
+  transmission are bounded separately and added (triangle inequality); the
+  channel maximum is compared with ``max_error``.
 
-Why it is conservative: Cycles writes light passes *divided by their colour
-pass*, so ``S`` is at least the real contribution ``S * colour`` whenever the
-BSDF colour is <= 1 (energy-conserving materials); the confidence terms are
-upper bounds at level ``z``; a pass whose mean is exactly 0 (all its samples
-0, the passes are non-negative) counts as noise-free even with one subset,
-otherwise an unknown variance makes the bound infinite (rejected).  A missing
-glossy or transmission pass makes the bound infinite unless the camera kept its
-position (or ``assume_diffuse`` is set).  Caveat: the thesis' error is
-absolute, in the units of the image; 1/256 is one 8-bit step of a display value
-of 1.
+It is conservative for energy-conserving materials (Cycles divides light
+passes by their colour pass); an unknown variance makes the bound infinite,
+except for a pass whose mean is exactly 0; a missing glossy or transmission
+pass makes it infinite unless the camera kept its position (or
+``assume_diffuse`` is set).  The thesis' error is absolute, in image units:
+1/256 is one 8-bit step of a display value of 1.
 
 Several previous pixels on one new pixel
 ----------------------------------------
@@ -161,6 +117,8 @@ by ``R_t R_{t-1}^T`` (its M2 is bounded by ``(sum_j |R_ij| sqrt(M2_j))^2``,
 the off-diagonal scatter being unknown); ``vector`` (motion) is per-frame data
 and is carried unchanged (do not rely on it); the rest are view-independent on
 validated pixels and are carried as they are.
+
+Measurements and design notes: docs/notes/reproject.md
 """
 from __future__ import annotations
 
@@ -168,8 +126,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .buffers import Buffers, Stat, luminance
-from .method import MethodResult, param
+from .buffers import Buffers, Stat, is_background, luminance
+from .method import param
 
 #: passes the reprojection reads (position is required, the rest are optional)
 PASSES = ("position", "depth", "glossy", "transmission", "object_index")
@@ -178,9 +136,6 @@ PASSES = ("position", "depth", "glossy", "transmission", "object_index")
 REASONS = ("ok", "empty", "no_position", "background", "inconsistent", "outside", "occluded",
            "object_index", "specular", "view_dependence", "changed", "camera_cut")
 _R = {name: i for i, name in enumerate(REASONS)}
-
-#: a depth at or above this is "infinite" (Blender's Z pass writes 1e10 for the background)
-FAR_DEPTH = 1e9
 
 
 # --------------------------------------------------------------------------- params
@@ -271,6 +226,22 @@ class Camera:
         u, _, vt = np.linalg.svd(self.view[:3, :3])
         self.rotation = u @ vt
 
+    @classmethod
+    def from_render(cls, info: dict) -> "Camera":
+        """The camera of a rendered frame from the executor's camera record.
+
+        info : dict with ``world_to_camera`` (4, 4), ``projection`` (4, 4)
+            camera-to-clip for the FULL frame (Blender's
+            ``calc_matrix_camera``), ``position`` (3,), ``width`` and
+            ``height`` of the full frame, ``domain`` (x0, y0, x1, y1) the
+            rendered region in top-left pixel coordinates (the scene's
+            border, if any).  The projection is cropped to the domain
+            (:func:`crop_projection`), so NDC [-1, 1] spans the rendered
+            pixels, as the Buffers do.
+        """
+        proj = crop_projection(info["projection"], info["width"], info["height"], info["domain"])
+        return cls(info["world_to_camera"], proj, info["position"])
+
     def clip(self, points: np.ndarray, w: float | np.ndarray = 1.0) -> np.ndarray:
         """(N, 3) world points (w = 1) or directions (w = 0) -> (N, 4) clip coordinates."""
         pts = np.asarray(points, np.float64)
@@ -327,6 +298,25 @@ def _matrix(m, what: str) -> np.ndarray:
     if scale == 0 or abs(np.linalg.det(a / scale)) < 1e-12:
         raise ValueError(f"camera {what} matrix is singular (degenerate camera)")
     return a
+
+
+def crop_projection(projection, width, height, domain) -> np.ndarray:
+    """Camera-to-clip matrix of a rendered sub-region (a render border).
+
+    ``projection`` (4, 4) maps the full ``width`` x ``height`` frame to NDC
+    [-1, 1]; ``domain`` (x0, y0, x1, y1) is the rendered region in top-left
+    pixel coordinates (exclusive upper bounds).  The result maps the domain's
+    pixels to NDC [-1, 1] instead: ``x' = a x + b w`` in clip space, with
+    ``a = W / w`` and ``b = (W - 2 x0) / w - 1`` (y likewise, flipped since
+    rows grow downwards).  A full-frame domain gives ``projection`` unchanged.
+    """
+    w_full, h_full = width, height
+    x0, y0, x1, y1 = domain
+    w, h = x1 - x0, y1 - y0
+    crop = np.eye(4)
+    crop[0, 0], crop[0, 3] = w_full / w, (w_full - 2 * x0) / w - 1.0
+    crop[1, 1], crop[1, 3] = h_full / h, 1.0 - (h_full - 2 * y0) / h
+    return crop @ projection
 
 
 def perspective(fov_x: float, width: int, height: int, near: float = 0.1, far: float = 100.0,
@@ -401,20 +391,6 @@ class Reprojection:
 
 
 # --------------------------------------------------------------------------- helpers
-def _feature(buf: Buffers, name: str):
-    st = buf.features.get(name)
-    return None if st is None else st
-
-
-def _background(pos: np.ndarray, depth: np.ndarray | None) -> np.ndarray:
-    """Background = no surface hit: position exactly 0 (and depth 0 or >= FAR_DEPTH)."""
-    bg = np.all(pos == 0.0, axis=-1)
-    if depth is not None:
-        d = depth[..., 0]
-        bg &= (d == 0.0) | (d >= FAR_DEPTH)
-    return bg
-
-
 def _var_of_mean(buf: Buffers, stat: Stat, idx: np.ndarray) -> np.ndarray:
     """(N, C) variance of the mean at flat pixels ``idx``; +inf where unknown,
     0 where the mean is exactly 0 (non-negative light passes: all samples 0)."""
@@ -505,7 +481,7 @@ def reproject(prev: Buffers, prev_camera: Camera, current: Buffers, current_came
     cur_pos = current.features["position"].mean.reshape(-1, 3)
     cur_depth = current.features["depth"].mean.reshape(-1, current.features["depth"].mean.shape[-1]) \
         if "depth" in current.features else None
-    cur_bg = _background(cur_pos, cur_depth)
+    cur_bg = is_background(cur_pos, None if cur_depth is None else cur_depth[:, 0])
     cur_n = current.n.reshape(-1)
     cur_known = np.all(np.isfinite(cur_pos), axis=1) & (cur_n > 0)
     prev_pos_all = prev.features["position"].mean.reshape(-1, 3)
@@ -545,17 +521,52 @@ def reproject(prev: Buffers, prev_camera: Camera, current: Buffers, current_came
 
 def _validate_chunk(idx, prev, pcam, cur, ccam, params, prev_pos_all, prev_depth_all,
                     cur_pos, cur_bg, cur_known, view_changed, have, pshape, cshape):
-    """Reason code (int8) and target flat index for the previous pixels ``idx``."""
-    hp, wp = pshape
-    h, w = cshape
-    m = idx.size
-    code = np.zeros(m, np.int8)
+    """Reason code (N,) int8 (index into :data:`REASONS`, 0 = valid) and target
+    flat index (N,) int64 of the previous pixels ``idx`` (N,): the validations
+    in the order of :data:`REASONS`, each pixel keeping the first that rejects it."""
+    code = np.zeros(idx.size, np.int8)
+    _reject(code, _empty_statistics(prev, idx), "empty")
+    pos, depth, pos_ok = _source_points(prev_pos_all, prev_depth_all, idx)
+    _reject(code, ~pos_ok, "no_position")
+    bg = is_background(pos, None if depth is None else depth[:, 0]) & pos_ok
+    if not params.background:
+        _reject(code, bg, "background")
+    if depth is not None and params.consistency_tolerance > 0:
+        _reject(code, _inconsistent(pos, depth[:, 0], bg, pcam, params.consistency_tolerance),
+                "inconsistent")
+    clip, no_direction = _clip_coordinates(pos, bg, idx, pcam, ccam, pshape)
+    row, col, inside = _inside_frame(clip, ccam, cshape)
+    _reject(code, no_direction | ~inside, "outside")
+    tgt = _target_pixels(row, col, inside, cshape)
+    _reject(code, _occluded(pos, bg, clip, row, col, tgt, ccam, cur_pos, cur_bg, cur_known, cshape,
+                            params.occlusion_tolerance, params.occlusion_pixels), "occluded")
+    if have["object_index"]:
+        _reject(code, _object_changed(prev, cur, idx, tgt, params.object_index_tolerance), "object_index")
+    surf = ~bg                                  # the environment is not view dependent
+    share = _specular_share(prev, cur, idx, tgt, have)
+    _reject(code, surf & (share > params.max_specular_share), "specular")
+    if view_changed:
+        eps = _view_dependence_error(prev, cur, idx, tgt, have, params.confidence, params.assume_diffuse)
+        _reject(code, surf & ~(eps <= params.max_error), "view_dependence")
+    if params.changed_sigma > 0:
+        _reject(code, _radiance_changed(prev, cur, idx, tgt, params.changed_sigma, params.max_error),
+                "changed")
+    return code, tgt
 
-    def reject(mask, name):
-        sel = (code == 0) & mask
-        code[sel] = _R[name]
 
-    # empty / non-finite statistics
+def _reject(code: np.ndarray, fails: np.ndarray, reason: str) -> None:
+    """Give ``reason`` to the pixels still valid in ``code`` ((N,) int8, 0 =
+    valid) where ``fails`` ((N,) bool), in place: a pixel keeps the first
+    reason that applies."""
+    code[(code == 0) & fails] = _R[reason]
+
+
+def _empty_statistics(prev: Buffers, idx: np.ndarray) -> np.ndarray:
+    """``empty``: the source has no samples, or non-finite statistics (n, k,
+    colour mean / M2, or a feature pass other than position and depth, which
+    :func:`_source_points` tests).  A precondition of copying a pixel's samples
+    (Sec. 3.2).  prev (Hp, Wp), idx (N,) flat source pixels -> (N,) bool,
+    True = rejected."""
     n = prev.n.reshape(-1)[idx]
     k = prev.k.reshape(-1)[idx]
     cm = prev.color.mean.reshape(-1, 3)[idx]
@@ -568,118 +579,259 @@ def _validate_chunk(idx, prev, pcam, cur, ccam, params, prev_pos_all, prev_depth
         c = st.mean.shape[-1]
         stats_ok &= np.all(np.isfinite(st.mean.reshape(-1, c)[idx]), 1) \
             & np.all(np.isfinite(st.m2.reshape(-1, c)[idx]), 1)
-    reject(~stats_ok, "empty")
-    # positions
-    pos = prev_pos_all[idx]
+    return ~stats_ok
+
+
+def _source_points(prev_pos: np.ndarray, prev_depth: np.ndarray | None, idx: np.ndarray):
+    """``no_position``: the stored first intersection points of the sources
+    (Sec. 3.2: "each pixel should store their first intersection point").
+
+    prev_pos (Hp*Wp, 3), prev_depth (Hp*Wp, C) or None: the previous frame's
+    Position and depth passes, flat; idx (N,).  Returns ``pos`` (N, 3) (0 where
+    unusable), ``depth`` (N, C) or None (as stored), ``ok`` (N,) bool: position
+    and depth finite.
+    """
+    pos = prev_pos[idx]
     pos_ok = np.all(np.isfinite(pos), axis=1)
-    depth = prev_depth_all[idx] if prev_depth_all is not None else None
+    depth = prev_depth[idx] if prev_depth is not None else None
     if depth is not None:
         pos_ok &= np.all(np.isfinite(depth), axis=1)
-    reject(~pos_ok, "no_position")
-    pos = np.where(pos_ok[:, None], pos, 0.0)
-    bg = _background(pos, depth) & pos_ok
-    if not params.background:
-        reject(bg, "background")
-    # consistency of position and depth (single clean first hit)
-    dist_p = np.linalg.norm(pos - pcam.position[None, :], axis=1)
-    if depth is not None and params.consistency_tolerance > 0:
-        d = depth[:, 0]
-        zdep = -(pos @ pcam.view[2, :3] + pcam.view[2, 3])
-        tol = params.consistency_tolerance * dist_p
-        consistent = (np.abs(dist_p - d) <= tol) | (np.abs(zdep - d) <= tol)
-        reject(~bg & ~consistent, "inconsistent")
-    # (a) projection into the new camera
-    rows = idx // wp
-    cols = idx % wp
+    return np.where(pos_ok[:, None], pos, 0.0), depth, pos_ok
+
+
+def _inconsistent(pos: np.ndarray, depth: np.ndarray, bg: np.ndarray, camera: Camera,
+                  tolerance: float) -> np.ndarray:
+    """``inconsistent``: the source is not a single clean first hit, its mean
+    position disagrees with its mean depth, ``| |P - C| - depth | > tolerance *
+    |P - C|`` against both the ray length and the camera z-depth.
+
+    This is the depth test of Sec. 3.2.2 (aliasing: a pixel mixing surfaces, or
+    surface and background, at an edge; the Position pass is a pixel mean, so a
+    half-covered pixel's position is pulled towards the origin), and it catches
+    Cycles' denoising depth adding path length through specular bounces
+    (mirrors, glass: part of "never reproject specular", Sec. 3.2.1).
+
+    pos (N, 3), depth (N,) the depth pass, bg (N,) bool (exempt), camera the
+    previous frame's -> (N,) bool, True = rejected.
+    """
+    dist_p = np.linalg.norm(pos - camera.position[None, :], axis=1)
+    zdep = -(pos @ camera.view[2, :3] + camera.view[2, 3])
+    tol = tolerance * dist_p
+    consistent = (np.abs(dist_p - depth) <= tol) | (np.abs(zdep - depth) <= tol)
+    return ~bg & ~consistent
+
+
+def _clip_coordinates(pos: np.ndarray, bg: np.ndarray, idx: np.ndarray, pcam: Camera, ccam: Camera,
+                      pshape: tuple):
+    """Clip coordinates of the sources in the new camera (Sec. 3.2: "a
+    direction from the new camera position towards the stored intersection
+    point"); background pixels are reprojected *by direction*.
+
+    A surface point is projected with homogeneous w = 1.  The environment is at
+    infinity, so a background pixel's radiance depends on its direction only:
+    the direction of its centre ray in the previous camera is projected with
+    w = 0 (orthographic cameras map every direction to w = 0, so there it
+    fails as ``outside``).
+
+    pos (N, 3), bg (N,) bool, idx (N,) flat pixels of the previous frame
+    (Hp, Wp) = ``pshape``.  Returns clip (N, 4) and ``no_direction`` (N,) bool:
+    background pixels whose ray direction is undefined (rejected as
+    ``outside``).
+    """
+    hp, wp = pshape
     clip = ccam.clip(pos, 1.0)
+    no_direction = np.zeros(idx.size, bool)
     if bg.any():
-        dirs = pcam.ray_directions(rows[bg].astype(np.float64), cols[bg].astype(np.float64), hp, wp)
+        rows = idx[bg] // wp
+        cols = idx[bg] % wp
+        dirs = pcam.ray_directions(rows.astype(np.float64), cols.astype(np.float64), hp, wp)
         clip[bg] = ccam.clip(np.where(np.isfinite(dirs), dirs, 0.0), 0.0)
-        bad_dir = ~np.all(np.isfinite(dirs), axis=1)
-        tmp = np.zeros(m, bool)
-        tmp[np.flatnonzero(bg)[bad_dir]] = True
-        reject(tmp, "outside")
-    row, col, front = ccam.pixel_coordinates(clip, h, w)
+        no_direction[np.flatnonzero(bg)[~np.all(np.isfinite(dirs), axis=1)]] = True
+    return clip, no_direction
+
+
+def _inside_frame(clip: np.ndarray, camera: Camera, cshape: tuple):
+    """``outside``, validation (a) of Sec. 3.2 ("within the screen limits"):
+    in front of the new camera and inside its (H, W) = ``cshape`` screen.
+
+    clip (N, 4) -> continuous (row, col) (N,) each (NaN behind the camera) and
+    ``inside`` (N,) bool, True = passes.
+    """
+    h, w = cshape
+    row, col, front = camera.pixel_coordinates(clip, h, w)
     inside = front & (row >= 0) & (row < h) & (col >= 0) & (col < w)
-    reject(~inside, "outside")
+    return row, col, inside
+
+
+def _target_pixels(row: np.ndarray, col: np.ndarray, inside: np.ndarray, cshape: tuple) -> np.ndarray:
+    """Flat index (N,) int64 of the current pixel ``(floor(row), floor(col))``
+    each source lands in; clamped into the frame (pixel 0 where not ``inside``,
+    those are rejected already)."""
+    h, w = cshape
     ti = np.clip(np.floor(np.where(inside, row, 0.0)), 0, h - 1).astype(np.int64)
     tj = np.clip(np.floor(np.where(inside, col, 0.0)), 0, w - 1).astype(np.int64)
-    tgt = ti * w + tj
-    # (b) occlusion: compare with the new frame's first hit at the target
+    return ti * w + tj
+
+
+def _occluded(pos, bg, clip, row, col, tgt, camera: Camera, cur_pos, cur_bg, cur_known, cshape,
+              tolerance: float, pixels: float) -> np.ndarray:
+    """``occluded``, validation (b) of Sec. 3.2: the first hit of the new
+    camera's ray towards the stored point must lie within epsilon of it.
+
+    The current frame's initial pass gives that hit, averaged over the target
+    pixel: with ``d = |P - C_t|`` and ``s`` the pixel's footprint at that
+    distance (:meth:`Camera.footprint`), the test is ``|P - W_t(target)| <=
+    tolerance * d + pixels * s``; the footprint term admits the sub-pixel
+    offset between the projected point and the target's centroid on slanted
+    surfaces.  Where the four pixel centres around the projected point are
+    known surface hits, the point is also compared with their bilinear
+    interpolation (the hit of the ray through the projected sub-pixel
+    position, to second order), and passes if either comparison does: grazing
+    surfaces stay valid without widening the tolerance.  A target without
+    samples or position, or a background target for a surface source (and
+    vice versa), counts as occluded.
+
+    pos (N, 3), bg (N,) bool, clip (N, 4), row / col (N,) continuous pixel
+    coordinates, tgt (N,) flat target pixels; cur_pos (H*W, 3), cur_bg and
+    cur_known (H*W,) bool: the current frame's positions, background and
+    "has samples and a finite position" -> (N,) bool, True = rejected.
+    """
+    h, w = cshape
     known = cur_known[tgt]
     tbg = cur_bg[tgt]
     wt = np.where(known[:, None], cur_pos[tgt], 0.0)
-    dist_c = np.linalg.norm(pos - ccam.position[None, :], axis=1)
-    fp = ccam.footprint(clip, h, w)
-    tol = params.occlusion_tolerance * dist_c + params.occlusion_pixels * fp
+    dist_c = np.linalg.norm(pos - camera.position[None, :], axis=1)
+    fp = camera.footprint(clip, h, w)
+    tol = tolerance * dist_c + pixels * fp
     same_surface = np.linalg.norm(pos - wt, axis=1) <= tol
-    # the ray towards P passes through the sub-pixel point (row, col): where the four
-    # surrounding pixel centres are known surface hits, their bilinear interpolation
-    # approximates that ray's hit (to second order on smooth surfaces), which keeps
-    # slanted and grazing surfaces (first-order variation s / cos(theta)) from failing
     interp = _interpolate_position(row, col, cur_pos, cur_known & ~cur_bg, h, w)
     with np.errstate(invalid="ignore"):
         same_surface |= np.linalg.norm(pos - interp, axis=1) <= tol
     visible = known & np.where(bg, tbg, ~tbg & same_surface)
-    reject(~visible, "occluded")
-    # (d) object index
-    if have["object_index"]:
-        oi_p = prev.features["object_index"].mean.reshape(-1, prev.features["object_index"].mean.shape[-1])[idx, 0]
-        oi_t = cur.features["object_index"].mean.reshape(-1, cur.features["object_index"].mean.shape[-1])[tgt, 0]
-        with np.errstate(invalid="ignore"):
-            same = np.abs(oi_p - oi_t) <= params.object_index_tolerance
-        reject(~same, "object_index")
-    # specular share and the Eq. 15 bound (surfaces only: the environment is not view dependent)
-    surf = ~bg
-    lum_p = np.maximum(luminance(cm), 0.0)
+    return ~visible
+
+
+def _object_changed(prev: Buffers, cur: Buffers, idx: np.ndarray, tgt: np.ndarray,
+                    tolerance: float) -> np.ndarray:
+    """``object_index``, validation (d): the object under the pixel changed,
+    ``|index_prev - index_target| > tolerance`` (moving objects, where the
+    scene gives them pass indices; Cycles' default index is 0).  An addition
+    to Sec. 3.2, which assumes a static scene.
+
+    idx (N,) flat source pixels, tgt (N,) flat target pixels -> (N,) bool,
+    True = rejected.
+    """
+    oi_p = prev.features["object_index"].mean.reshape(-1, prev.features["object_index"].mean.shape[-1])[idx, 0]
+    oi_t = cur.features["object_index"].mean.reshape(-1, cur.features["object_index"].mean.shape[-1])[tgt, 0]
+    with np.errstate(invalid="ignore"):
+        same = np.abs(oi_p - oi_t) <= tolerance
+    return ~same
+
+
+#: Cycles' light passes holding the view-dependent radiance (direct + indirect)
+_LIGHT_PASSES = ("glossy", "transmission")
+
+
+def _light_pass(prev: Buffers, cur: Buffers, name: str, idx: np.ndarray, tgt: np.ndarray):
+    """Means of light pass ``name`` at the sources (N, C) and at their targets
+    in the current frame (N, C'; non-finite -> +inf)."""
+    sp = prev.features[name]
+    stc = cur.features[name]
+    s_p = sp.mean.reshape(-1, sp.mean.shape[-1])[idx]
+    s_t = stc.mean.reshape(-1, stc.mean.shape[-1])[tgt]
+    return s_p, np.where(np.isfinite(s_t), s_t, np.inf)
+
+
+def _specular_share(prev: Buffers, cur: Buffers, idx: np.ndarray, tgt: np.ndarray, have: dict) -> np.ndarray:
+    """Share of view-dependent light, for ``specular``: ``lum(glossy +
+    transmission) / lum(combined)``, the larger of the previous pixel's and the
+    target's in the current frame.
+
+    The thesis never reprojects specular (alpha < 0.01) or refractive
+    materials (Sec. 3.2.1); Cycles has no roughness pass, so "mostly specular
+    or refractive" is read from the light passes (missing passes count as 0).
+    idx, tgt (N,) -> (N,) float64 >= 0; +inf where there is view-dependent
+    light but no positive combined luminance, or the ratio is undefined.
+    """
+    m = idx.size
+    lum_p = np.maximum(luminance(prev.color.mean.reshape(-1, 3)[idx]), 0.0)
     cur_cm = cur.color.mean.reshape(-1, 3)[tgt]
     lum_t = np.maximum(luminance(np.where(np.isfinite(cur_cm), cur_cm, 0.0)), 0.0)
     vd_p = np.zeros(m)
     vd_t = np.zeros(m)
-    eps = np.zeros(m)
-    complete = True
-    for pname in ("glossy", "transmission"):
+    for pname in _LIGHT_PASSES:
         if not have[pname]:
-            complete = False
             continue
-        sp = prev.features[pname]
-        stc = cur.features[pname]
-        c = sp.mean.shape[-1]
-        s_p = sp.mean.reshape(-1, c)[idx]
-        s_t = stc.mean.reshape(-1, stc.mean.shape[-1])[tgt]
-        s_t = np.where(np.isfinite(s_t), s_t, np.inf)
-        vd_p += np.maximum(luminance(s_p[:, :3]) if c >= 3 else s_p[:, 0], 0.0)
+        s_p, s_t = _light_pass(prev, cur, pname, idx, tgt)
+        vd_p += np.maximum(luminance(s_p[:, :3]) if s_p.shape[1] >= 3 else s_p[:, 0], 0.0)
         vd_t += np.maximum(luminance(s_t[:, :3]) if s_t.shape[1] >= 3 else s_t[:, 0], 0.0)
-        v_p = _var_of_mean(prev, sp, idx)
-        v_t = _var_of_mean(cur, stc, tgt)
-        eps = eps + _bound(s_p, v_p, s_t, v_t, params.confidence).max(axis=1)
     with np.errstate(divide="ignore", invalid="ignore"):
         share_p = np.where(vd_p > 0, vd_p / np.where(lum_p > 0, lum_p, 0.0), 0.0)
         share_t = np.where(vd_t > 0, vd_t / np.where(lum_t > 0, lum_t, 0.0), 0.0)
     share_p = np.where(np.isnan(share_p), np.inf, share_p)
     share_t = np.where(np.isnan(share_t), np.inf, share_t)
-    reject(surf & (np.maximum(share_p, share_t) > params.max_specular_share), "specular")
-    if view_changed:
-        if not complete and not params.assume_diffuse:
-            eps = np.full(m, np.inf)
-        reject(surf & ~(eps <= params.max_error), "view_dependence")
-    # change of the radiance itself (moving shadows, lights, animated textures): Welch-free
-    # two-sample test with the per-sample variance pooled over both frames (under "unchanged"
-    # both frames sample the same pixel integrand), s^2 = (M2_p + M2_t) / (k_p - 1 + k_t - 1)
-    if params.changed_sigma > 0:
-        k_t = cur.k.reshape(-1)[tgt]
-        n_t = cur.n.reshape(-1)[tgt]
-        m2_t = cur.color.m2.reshape(-1, 3)[tgt]
-        dof = np.maximum(k - 1.0, 0.0) + np.maximum(k_t - 1.0, 0.0)
-        known_v = (dof > 0) & (n > 0) & (n_t > 0) & np.all(np.isfinite(m2_t), axis=1)
-        with np.errstate(invalid="ignore", over="ignore", divide="ignore"):
-            s2 = (c2 + m2_t) / np.where(known_v, dof, 1.0)[:, None]
-            v = s2 * (1.0 / np.where(n > 0, n, 1.0) + 1.0 / np.where(n_t > 0, n_t, 1.0))[:, None]
-            diff = np.abs(cm - np.where(np.isfinite(cur_cm), cur_cm, np.inf))
-            lim = params.changed_sigma * np.sqrt(np.maximum(v, 0.0)) + params.max_error
-            bad = known_v[:, None] & ~(diff <= lim)
-        reject(bad.any(axis=1), "changed")
-    return code, tgt
+    return np.maximum(share_p, share_t)
+
+
+def _view_dependence_error(prev: Buffers, cur: Buffers, idx: np.ndarray, tgt: np.ndarray, have: dict,
+                           confidence: float, assume_diffuse: bool) -> np.ndarray:
+    """Upper bound (N,) of Eq. 15's view-dependence error for ``view_dependence``
+    (validation (c) of Sec. 3.2; Sec. 3.2.1), when the camera moved.
+
+    Glossy and transmission are bounded separately by :func:`_bound` and added
+    (triangle inequality), each the maximum over its channels.  A missing
+    light pass makes the bound +inf unless ``assume_diffuse`` (then it counts
+    as 0).  idx, tgt (N,) -> (N,) float64 in [0, inf].
+    """
+    eps = np.zeros(idx.size)
+    complete = True
+    for pname in _LIGHT_PASSES:
+        if not have[pname]:
+            complete = False
+            continue
+        s_p, s_t = _light_pass(prev, cur, pname, idx, tgt)
+        v_p = _var_of_mean(prev, prev.features[pname], idx)
+        v_t = _var_of_mean(cur, cur.features[pname], tgt)
+        eps = eps + _bound(s_p, v_p, s_t, v_t, confidence).max(axis=1)
+    if not complete and not assume_diffuse:
+        return np.full(idx.size, np.inf)
+    return eps
+
+
+def _radiance_changed(prev: Buffers, cur: Buffers, idx: np.ndarray, tgt: np.ndarray, sigma: float,
+                      max_error: float) -> np.ndarray:
+    """``changed``: the sigma-test (default 5 sigma) on the radiance itself, an
+    addition (Sec. 3 assumes a static scene and restarts on any change).
+
+    The reprojected mean and the current frame's own initial-pass mean at the
+    target differ beyond noise: ``|m_prev - m_t| > sigma * s * sqrt(1/n_prev +
+    1/n_t) + max_error`` in some channel, with the per-sample variance pooled
+    over both frames, ``s^2 = (M2_prev + M2_t) / (k_prev - 1 + k_t - 1)``
+    (unchanged pixels sample the same integrand, so pooling is valid and gives
+    more degrees of freedom than the initial pass alone).  Catches what no
+    geometric test sees (moving shadows and lights, animated textures), but
+    only changes large against the initial pass's noise.  Skipped (passes)
+    where no variance exists (one group in both frames).
+
+    idx, tgt (N,) -> (N,) bool, True = rejected.
+    """
+    n = prev.n.reshape(-1)[idx]
+    k = prev.k.reshape(-1)[idx]
+    cm = prev.color.mean.reshape(-1, 3)[idx]
+    c2 = prev.color.m2.reshape(-1, 3)[idx]
+    k_t = cur.k.reshape(-1)[tgt]
+    n_t = cur.n.reshape(-1)[tgt]
+    m2_t = cur.color.m2.reshape(-1, 3)[tgt]
+    cur_cm = cur.color.mean.reshape(-1, 3)[tgt]
+    dof = np.maximum(k - 1.0, 0.0) + np.maximum(k_t - 1.0, 0.0)
+    known_v = (dof > 0) & (n > 0) & (n_t > 0) & np.all(np.isfinite(m2_t), axis=1)
+    with np.errstate(invalid="ignore", over="ignore", divide="ignore"):
+        s2 = (c2 + m2_t) / np.where(known_v, dof, 1.0)[:, None]
+        v = s2 * (1.0 / np.where(n > 0, n, 1.0) + 1.0 / np.where(n_t > 0, n_t, 1.0))[:, None]
+        diff = np.abs(cm - np.where(np.isfinite(cur_cm), cur_cm, np.inf))
+        lim = sigma * np.sqrt(np.maximum(v, 0.0)) + max_error
+        bad = known_v[:, None] & ~(diff <= lim)
+    return bad.any(axis=1)
 
 
 def _interpolate_position(row, col, cur_pos, usable, h, w):
@@ -737,7 +889,7 @@ def _scatter(prev: Buffers, out: Buffers, src: np.ndarray, tgt: np.ndarray, size
         z_c = -(pos @ ccam.view[2, :3] + ccam.view[2, 3])
         use_z = np.abs(z_p - d[:, 0]) < np.abs(dist_p - d[:, 0])
         shift = np.where(use_z, z_c - z_p, dist_c - dist_p)
-        bg = _background(pos, d)
+        bg = is_background(pos, d[:, 0])
         shift = np.where(bg | ~np.isfinite(shift), 0.0, shift)
         transforms["depth"] = ("shift", shift)
     rot = ccam.rotation @ pcam.rotation.T
@@ -833,7 +985,7 @@ def backward_coordinates(prev_camera: Camera, current_camera: Camera, current: B
         if "depth" in current.features else None
     ok = np.all(np.isfinite(pos), axis=1)
     pos0 = np.where(ok[:, None], pos, 0.0)
-    bg = _background(pos0, depth) & ok
+    bg = is_background(pos0, None if depth is None else depth[:, 0]) & ok
     clip = prev_camera.clip(pos0, 1.0)
     if bg.any():
         idx = np.flatnonzero(bg)
@@ -846,124 +998,3 @@ def backward_coordinates(prev_camera: Camera, current_camera: Camera, current: B
     out.reshape(-1, 2)[good, 0] = row[good]
     out.reshape(-1, 2)[good, 1] = col[good]
     return out
-
-
-# --------------------------------------------------------------------------- Algorithm 2
-def sampling_priority(buf: Buffers, probability: np.ndarray | None, var_params=None) -> np.ndarray:
-    """Sampling priority of Algorithm 2 (thesis Sec. 3.3) after a reprojection.
-
-    Pixels that carry a probability from the previous frame (reprojected from a
-    pixel that had finished Algorithm 1's threshold phase) wait: they get no
-    samples until ``itr`` reaches ``max_spp``; every other pixel (not
-    reprojected, or reprojected before its probability was set) follows
-    Algorithm 1: ready while ``spp < min_spp`` or ``Pvariance >= tau``.
-
-    Parameters
-    ----------
-    buf : Buffers, the frame's statistics after merging the reprojection.
-    probability : (H, W) reprojected probability (``Reprojection.extra`` of the
-        var state's ``prob``), NaN where none was calculated; None = none.
-    var_params : ``var.Params``.
-
-    Returns
-    -------
-    (H, W) float64, larger = sampled first: ``+inf`` below ``min_spp``,
-    ``Pvariance`` (Eq. 12, > 0) for pixels without a probability, ``-1`` for
-    pixels that carry one (never ready in the threshold phase, where tau >= 0).
-    """
-    from . import var
-    vp = var_params if var_params is not None else var.Params()
-    pv = var.pixel_priority(buf, vp)
-    pv = np.where(np.isnan(pv), np.inf, pv)
-    has_prob = _has_probability(probability, buf.shape)
-    spp = np.where(np.isfinite(buf.n), buf.n, 0.0)
-    out = np.where(has_prob, -1.0, pv)
-    return np.where(~has_prob & (spp < vp.min_spp), np.inf, out)
-
-
-def _has_probability(probability, shape):
-    if probability is None:
-        return np.zeros(shape, bool)
-    p = np.asarray(probability, np.float64)
-    if p.shape != tuple(shape):
-        raise ValueError(f"probability map has shape {p.shape}, the frame is {tuple(shape)}")
-    return np.isfinite(p)
-
-
-def sample_map(buf: Buffers, result: MethodResult | None, budget: int, params=None,
-               state: dict | None = None) -> np.ndarray:
-    """The next ``budget`` samples of Algorithm 2 (thesis Sec. 3.3) as a map.
-
-    Same contract and mapping onto region iterations as ``var.sample_map``
-    (Algorithm 1; ``params`` is a ``var.Params``), with Algorithm 2's changes:
-
-    * ``state['probability']`` (H, W): the reprojected probabilities (NaN where
-      the pixel has none).  Pixels with one are never ready while
-      ``itr < max_spp`` (``else if !PprobabilityCalculated``), so the threshold
-      phase spends the budget on pixels that were not reprojected (or were
-      reprojected before their probability was set): those have priority.
-    * at ``itr == max_spp`` the pixels without a probability get
-      ``spp / max_spp``; reprojected probabilities are kept ("they also copy
-      the calculated variance/probability", Sec. 3.3).  Probabilities are
-      clipped to ``[min_spp / max_spp, 1]`` (a pixel with carried samples may
-      exceed ``max_spp``: the thesis' "incorrect probabilities", clipped).
-    * ``itr`` restarts at the frame: the loop's initial pass (which the
-      occlusion test needs) counts as iterations ``0 .. n0-1``; ``state['itr']``
-      may be preset.
-
-    Returns (H, W) int64 >= 0 summing exactly to ``budget``.
-    """
-    from . import var
-    params = params if params is not None else var.Params()
-    if state is None:
-        state = {}
-    h, w = buf.shape
-    npx = h * w
-    out = np.zeros(npx, np.int64)
-    remaining = int(max(0, budget))
-    if npx == 0 or remaining == 0:
-        return out.reshape(h, w)
-    has_prob = _has_probability(state.get("probability"), buf.shape).ravel()
-    if state.get("var_shape") != tuple(buf.shape) or "rng" not in state:
-        preset = state.get("itr")
-        var._init_state(buf, params, state)
-        if preset is None:
-            n = np.asarray(buf.n, np.float64)[~has_prob.reshape(h, w)]
-            n = n[np.isfinite(n)]
-            state["itr"] = int(np.floor(n.min())) if n.size else 0
-    lo, hi = int(params.min_spp), int(params.max_spp)
-    p_floor = min(1.0, max(lo, 1) / max(hi, 1))
-    itr, cursor = int(state["itr"]), int(state["cursor"])
-    n = np.asarray(buf.n, np.float64).ravel()
-    spp = np.where(np.isfinite(n) & (n > 0), n, 0.0)
-    if itr < hi:
-        pv = var.pixel_priority(buf, params).ravel()
-        while remaining > 0 and itr < hi:
-            tau = var.threshold(itr, params)
-            ready = ((pv >= tau) | (spp < lo)) & ~has_prob
-            if cursor:
-                ready[:cursor] = False
-            cnt = int(np.count_nonzero(ready))
-            if cnt > remaining:
-                idx = np.flatnonzero(ready)[:remaining]
-                out[idx] += 1
-                spp[idx] += 1
-                cursor = int(idx[-1]) + 1
-                remaining = 0
-                break
-            out += ready
-            spp += ready
-            remaining -= cnt
-            itr, cursor = itr + 1, 0
-    if itr >= hi and state.get("prob") is None:
-        carried = np.asarray(state["probability"], np.float64).ravel() if has_prob.any() else None
-        prob = spp / max(hi, 1)
-        if carried is not None:
-            prob = np.where(has_prob, carried, prob)
-        state["prob"] = np.clip(prob, p_floor, 1.0).reshape(h, w)
-    if remaining > 0:
-        itr, cursor = var.probability_phase(out, state["prob"], p_floor, remaining, itr, cursor,
-                                            state["rng"])
-    state["itr"], state["cursor"] = itr, cursor
-    state["tau"] = var.threshold(itr, params)
-    return out.reshape(h, w)

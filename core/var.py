@@ -1,10 +1,17 @@
-"""``var``: the adaptive sampler of Schalk 2018 (thesis section 3.1, Algorithm 1).
+"""``var``: the adaptive samplers of Schalk 2018, "Reprojection for adaptive
+sampling" (thesis Sec. 3.1, Algorithm 1; Sec. 3.3, Algorithm 2).
 
 No reconstruction: the image is the sample mean.  What the method decides is
-*where* the next samples go.
+*where* the next samples go.  Two samplers share one state and one
+reconstruction:
 
-The algorithm (thesis Algorithm 1)
-----------------------------------
+* :func:`sample_map`, Algorithm 1 (Sec. 3.1), the method ``var``;
+* :func:`reprojected_sample_map`, Algorithm 2 (Sec. 3.3), the frame-to-frame
+  combination with ``core.reproject``: :data:`REPROJECT`, the method
+  ``var-reproject``.
+
+Algorithm 1
+-----------
 Iterations ``itr = 0, 1, ...``; in each one, every pixel ``P`` is visited once
 (scanline order) and traces one sample if it is *ready*:
 
@@ -20,6 +27,16 @@ Iterations ``itr = 0, 1, ...``; in each one, every pixel ``P`` is visited once
 
 Because ``min_spp > 0`` every pixel keeps a probability ``>= min_spp/max_spp``
 (table 1 of the thesis), so the sampler converges.
+
+Algorithm 2
+-----------
+After a reprojection (``core.reproject``), reprojected pixels also carry the
+probability their source had computed (``Reprojection.extra``, passed in
+``state['probability']``, NaN where none).  Pixels with one wait while
+``itr < max_spp`` (``else if !PprobabilityCalculated``), so the threshold
+phase spends the budget on the other pixels first; at ``itr == max_spp`` the
+carried probabilities are kept and the others get ``spp / max_spp``.  ``itr``
+restarts with the frame.
 
 Mapping onto the render loop (region renders, not single samples)
 -----------------------------------------------------------------
@@ -53,42 +70,40 @@ samples of that sequence**:
   (``state['itr']`` starts at the smallest ``buf.n``; the loop may preset it).
   This is exact when ``n0 <= min_spp`` (every pixel is ready there anyway);
   a larger initial pass replaces iterations ``min_spp..n0-1`` by uniform ones.
-* Fidelity improves with smaller blocks: with a budget of one iteration per
-  call the mapping is Algorithm 1 except that a pixel's variance reflects its
-  samples up to the previous call.
 
-Relation to the user's budget: the thesis runs open-ended (until the path
-tracer restarts); here the run ends when the loop's ``--spp`` budget is spent.
-Reaching ``tau = 0`` costs between ``min_spp`` and ``max_spp`` samples per
-pixel (on average ``max_spp`` times the mean final probability); a smaller
-budget stops inside the threshold phase, a larger one spends the rest with the
-per-pixel probabilities, about ``sum(P)`` samples per iteration.
+The thesis runs open-ended (until the path tracer restarts); here the run
+ends when the loop's ``--spp`` budget is spent.
 
 Welford vs sample subsets (Eq. 9-11)
 ------------------------------------
-Eq. 9-10 keep the per-sample running mean and ``M2``; Eq. 11 is
-``Var_p = (M2_r + M2_g + M2_b) / ((spp - 1) * 3)``, the per-sample variance
-averaged over RGB.  Our :class:`~core.buffers.Buffers` merge sample *groups*
-(each region render is one group) with Chan's update, which is Welford's with
-group means: ``M2`` is the between-group sum of squares with
-``E[M2] = sigma^2 (k - 1)``, so ``buf.sample_variance() = M2 / (k - 1)`` is
-the same unbiased per-sample variance, and equals Eq. 11 exactly when every
-group holds one sample (``k = spp``; the loop's default initial pass of 4 spp
-in 4 subsets does).  With fewer groups the estimate has ``k - 1`` instead of
-``spp - 1`` degrees of freedom.
+Eq. 11 is ``Var_p = (M2_r + M2_g + M2_b) / ((spp - 1) * 3)``.  Our
+:class:`~core.buffers.Buffers` merge sample *groups* (each region render is
+one group) with Chan's update, Welford's with group means, so
+``buf.sample_variance() = M2 / (k - 1)`` is the same unbiased per-sample
+variance, and equals Eq. 11 exactly when every group holds one sample
+(``k = spp``; the loop's default initial pass of 4 spp in 4 subsets does).
 
-Special cases
--------------
+Choices
+-------
+* ``tau``'s update line in the pseudo code reads ``tau := 1/(max_spp -
+  min_spp)``; we read it as a decrement (the text: tau "will linearly
+  decrease to zero").
+* Eq. 12 (``epsilon`` outside the root) is the default; Algorithm 1's form
+  ``sqrt(Var + eps)`` is ``Params.epsilon_inside_sqrt``.
 * ``k < 2`` (one group, no variance): Algorithm 1 would divide by
   ``Pspp - 1 = 0``; we take ``Pvariance = +inf`` (unknown counts as
-  noisiest), so such pixels are always ready while ``tau > 0`` and the
-  ``tau`` phase then spends samples uniformly on them.
+  noisiest), so such pixels are always ready while ``tau > 0``.
 * Non-finite means or ``M2`` (NaN/Inf samples): ``Pvariance = +inf`` as well;
   the image replaces them by 0 and ``info['nonfinite_pixels']`` counts them.
 * Negative luminance (possible with negative pixels): clamped to 0 in Eq. 12,
   i.e. treated as dark.
 * Zero variance and zero luminance: Eq. 12 gives ``eps / eps = 1``, as the
   thesis intends ("still can get samples").
+* Algorithm 2: probabilities are clipped to ``[min_spp / max_spp, 1]`` (a
+  pixel with carried samples may exceed ``max_spp``: the thesis' "incorrect
+  probabilities", Sec. 3.3).
+
+Measurements and design notes: docs/notes/var.md
 """
 from __future__ import annotations
 
@@ -99,8 +114,11 @@ import numpy as np
 from .buffers import Buffers, luminance
 from .method import MethodResult, param
 
+NAME = "var"
 PASSES: tuple = ()
 ADAPTIVE = True
+#: Algorithm 1 adapts on the raw statistics in the Buffers, never on ``result``
+SAMPLER_USES_RESULT = False
 
 
 @dataclass
@@ -235,17 +253,26 @@ def reconstruct(buf: Buffers, params: Params | None = None) -> MethodResult:
     return _result(buf.color.mean, buf.variance_of_mean(), buf.n)
 
 
-def denoise(color, color_var, features=None, params=None) -> MethodResult:
-    """Same as :func:`reconstruct` from arrays: ``color`` (H, W, 3) pixel means,
-    ``color_var`` (H, W, 3) variance of the mean (+inf = unknown).  ``features``
-    are ignored (PASSES is empty)."""
+def denoise(color, color_var, features=None, feature_var=None, n=None, params=None) -> MethodResult:
+    """Same as :func:`reconstruct` from arrays.
+
+    color : (H, W, 3) pixel means.
+    color_var : (H, W, 3) variance of the mean (+inf = unknown).
+    features, feature_var, params : ignored (PASSES is empty, nothing to tune).
+    n : (H, W) or scalar samples per pixel, or None; only reported
+        (``info['spp_mean']``), as :func:`reconstruct` does.
+    """
     color = np.asarray(color, np.float64)
     color_var = np.broadcast_to(np.asarray(color_var, np.float64), color.shape)
-    return _result(color, color_var)
+    return _result(color, color_var, n)
 
 
 # ------------------------------------------------------------------ sampling
 def _init_state(buf: Buffers, params: Params, state: dict) -> None:
+    """Start Algorithm 1 on a frame: ``itr`` at the smallest ``buf.n`` (the
+    initial pass as iterations ``0..n0-1``) unless the loop preset it, no
+    probabilities yet, the generator seeded from ``params.seed`` and
+    ``state['seed']``."""
     n = np.asarray(buf.n, np.float64)
     n = np.where(np.isfinite(n) & (n > 0), n, 0.0)
     seed_seq = np.random.SeedSequence([int(params.seed) & 0x7FFFFFFF,
@@ -290,50 +317,74 @@ def sample_map(buf: Buffers, result: MethodResult | None, budget: int,
     if state is None:
         state = {}
     h, w = buf.shape
-    npx = h * w
-    out = np.zeros(npx, np.int64)
     remaining = int(max(0, budget))
-    if npx == 0 or remaining == 0:
-        return out.reshape(h, w)
+    if h * w == 0 or remaining == 0:
+        return np.zeros((h, w), np.int64)
     if state.get("var_shape") != tuple(buf.shape) or "rng" not in state:
         _init_state(buf, params, state)
+    return _next_samples(buf, params, state, remaining)
+
+
+def _next_samples(buf: Buffers, params: Params, state: dict, remaining: int,
+                  wait: np.ndarray | None = None, carried=None) -> np.ndarray:
+    """Hand out ``remaining`` (> 0) samples from ``state``'s position in the
+    (itr, pixel) sequence: threshold phase, then the probabilities.
+
+    wait : flat (H*W,) bool or None; pixels never ready in the threshold phase
+        (Algorithm 2's ``PprobabilityCalculated``).
+    carried : (H, W) probabilities those pixels keep at ``itr == max_spp``.
+    Returns the (H, W) int64 map; updates ``state`` (itr, cursor, prob, tau).
+    """
+    h, w = buf.shape
+    out = np.zeros(h * w, np.int64)
     lo, hi = int(params.min_spp), int(params.max_spp)
     p_floor = min(1.0, max(lo, 1) / max(hi, 1))
     itr, cursor = int(state["itr"]), int(state["cursor"])
     n = np.asarray(buf.n, np.float64).ravel()
     spp = np.where(np.isfinite(n) & (n > 0), n, 0.0)
-
-    # ---- threshold phase (itr < max_spp)
     if itr < hi:
         pv = pixel_priority(buf, params).ravel()
-        while remaining > 0 and itr < hi:
-            tau = threshold(itr, params)
-            ready = pv >= tau
-            ready |= spp < lo
-            if cursor:
-                ready[:cursor] = False
-            cnt = int(np.count_nonzero(ready))
-            if cnt > remaining:                 # budget ends inside this iteration
-                idx = np.flatnonzero(ready)[:remaining]
-                out[idx] += 1
-                spp[idx] += 1
-                cursor = int(idx[-1]) + 1
-                remaining = 0
-                break
-            out += ready
-            spp += ready
-            remaining -= cnt
-            itr, cursor = itr + 1, 0
+        remaining, itr, cursor = threshold_phase(out, spp, pv, remaining, itr, cursor, params, wait)
     if itr >= hi and state.get("prob") is None:
-        # Alg. 1: at itr == max_spp, Pvariance <- Pspp / max_spp
-        state["prob"] = np.clip(spp / max(hi, 1), p_floor, 1.0).reshape(h, w)
-
-    # ---- probability phase (itr >= max_spp)
+        # Alg. 1: at itr == max_spp, Pvariance <- Pspp / max_spp (Alg. 2: carried ones kept)
+        prob = spp / max(hi, 1)
+        if wait is not None and wait.any():
+            prob = np.where(wait, np.asarray(carried, np.float64).ravel(), prob)
+        state["prob"] = np.clip(prob, p_floor, 1.0).reshape(h, w)
     if remaining > 0:
         itr, cursor = probability_phase(out, state["prob"], p_floor, remaining, itr, cursor, state["rng"])
     state["itr"], state["cursor"] = itr, cursor
     state["tau"] = threshold(itr, params)
     return out.reshape(h, w)
+
+
+def threshold_phase(out, spp, pv, remaining, itr, cursor, params: Params, wait=None):
+    """Hand out up to ``remaining`` samples of Algorithm 1's threshold phase
+    (``itr < max_spp``: a pixel is ready if ``Pvariance >= tau`` or ``Pspp <
+    min_spp``), in place into ``out`` and ``spp`` (flat arrays), continuing at
+    scanline ``cursor`` of iteration ``itr``; ``pv`` (flat) is Pvariance,
+    frozen for the call.  Pixels in ``wait`` (flat bool, Algorithm 2) are never
+    ready.  Returns (remaining, itr, cursor)."""
+    lo, hi = int(params.min_spp), int(params.max_spp)
+    while remaining > 0 and itr < hi:
+        tau = threshold(itr, params)
+        ready = pv >= tau
+        ready |= spp < lo
+        if wait is not None:
+            ready &= ~wait
+        if cursor:
+            ready[:cursor] = False
+        cnt = int(np.count_nonzero(ready))
+        if cnt > remaining:                 # budget ends inside this iteration
+            idx = np.flatnonzero(ready)[:remaining]
+            out[idx] += 1
+            spp[idx] += 1
+            return 0, itr, int(idx[-1]) + 1
+        out += ready
+        spp += ready
+        remaining -= cnt
+        itr, cursor = itr + 1, 0
+    return remaining, itr, cursor
 
 
 def probability_phase(out, prob, p_floor, remaining, itr, cursor, rng):
@@ -370,3 +421,111 @@ def probability_phase(out, prob, p_floor, remaining, itr, cursor, rng):
         remaining -= cnt
         itr, cursor = itr + 1, 0
     return itr, cursor
+
+
+# ------------------------------------------------------------- Algorithm 2
+def _has_probability(probability, shape) -> np.ndarray:
+    """(H, W) bool: pixels that carry a reprojected probability (finite
+    entries of ``probability``); all False for None.  ValueError on a shape
+    other than the frame's."""
+    if probability is None:
+        return np.zeros(shape, bool)
+    p = np.asarray(probability, np.float64)
+    if p.shape != tuple(shape):
+        raise ValueError(f"probability map has shape {p.shape}, the frame is {tuple(shape)}")
+    return np.isfinite(p)
+
+
+def sampling_priority(buf: Buffers, probability: np.ndarray | None, var_params=None) -> np.ndarray:
+    """Sampling priority of Algorithm 2 (thesis Sec. 3.3) after a reprojection.
+
+    Pixels that carry a probability from the previous frame (reprojected from a
+    pixel that had finished Algorithm 1's threshold phase) wait: they get no
+    samples until ``itr`` reaches ``max_spp``; every other pixel (not
+    reprojected, or reprojected before its probability was set) follows
+    Algorithm 1: ready while ``spp < min_spp`` or ``Pvariance >= tau``.
+
+    Parameters
+    ----------
+    buf : Buffers, the frame's statistics after merging the reprojection.
+    probability : (H, W) reprojected probability (``Reprojection.extra`` of the
+        state's ``prob``), NaN where none was calculated; None = none.
+    var_params : Params.
+
+    Returns
+    -------
+    (H, W) float64, larger = sampled first: ``+inf`` below ``min_spp``,
+    ``Pvariance`` (Eq. 12, > 0) for pixels without a probability, ``-1`` for
+    pixels that carry one (never ready in the threshold phase, where tau >= 0).
+    """
+    vp = var_params if var_params is not None else Params()
+    pv = pixel_priority(buf, vp)
+    pv = np.where(np.isnan(pv), np.inf, pv)
+    has_prob = _has_probability(probability, buf.shape)
+    spp = np.where(np.isfinite(buf.n), buf.n, 0.0)
+    out = np.where(has_prob, -1.0, pv)
+    return np.where(~has_prob & (spp < vp.min_spp), np.inf, out)
+
+
+def reprojected_sample_map(buf: Buffers, result: MethodResult | None, budget: int, params=None,
+                           state: dict | None = None) -> np.ndarray:
+    """The next ``budget`` samples of Algorithm 2 (thesis Sec. 3.3) as a map.
+
+    Same contract and mapping onto region iterations as :func:`sample_map`
+    (Algorithm 1; ``result`` unused), with Algorithm 2's changes:
+
+    * ``state['probability']`` (H, W): the reprojected probabilities (NaN where
+      the pixel has none).  Pixels with one are never ready while
+      ``itr < max_spp`` (``else if !PprobabilityCalculated``), so the threshold
+      phase spends the budget on pixels that were not reprojected (or were
+      reprojected before their probability was set): those have priority.
+    * at ``itr == max_spp`` the pixels without a probability get
+      ``spp / max_spp``; reprojected probabilities are kept ("they also copy
+      the calculated variance/probability", Sec. 3.3).  Probabilities are
+      clipped to ``[min_spp / max_spp, 1]``.
+    * ``itr`` restarts at the frame: the loop's initial pass (which the
+      occlusion test needs) counts as iterations ``0 .. n0-1`` of the pixels
+      without a probability; ``state['itr']`` may be preset.
+
+    Returns (H, W) int64 >= 0 summing exactly to ``budget``.
+    """
+    params = params if params is not None else Params()
+    if state is None:
+        state = {}
+    h, w = buf.shape
+    remaining = int(max(0, budget))
+    if h * w == 0 or remaining == 0:
+        return np.zeros((h, w), np.int64)
+    has_prob = _has_probability(state.get("probability"), buf.shape)
+    if state.get("var_shape") != tuple(buf.shape) or "rng" not in state:
+        preset = state.get("itr")
+        _init_state(buf, params, state)
+        if preset is None:
+            n = np.asarray(buf.n, np.float64)[~has_prob]
+            n = n[np.isfinite(n)]
+            state["itr"] = int(np.floor(n.min())) if n.size else 0
+    return _next_samples(buf, params, state, remaining, has_prob.ravel(), state.get("probability"))
+
+
+class _VarReproject:
+    """The method ``var-reproject``: var with Algorithm 2's sampler (Schalk
+    2018 Sec. 3.3) for frames that received reprojected samples.
+
+    Same Params, passes and reconstruction (the sample mean) as ``var``; its
+    sampler, :func:`reprojected_sample_map`, reads the reprojected per-pixel
+    probability from ``state["probability"]`` ((H, W), NaN where the pixel
+    carries none; the frame loop writes ``Reprojection.extra['probability']``
+    there after reprojecting) and samples the pixels without one first.
+    """
+
+    NAME = "var-reproject"
+    PASSES = PASSES
+    Params = Params
+    ADAPTIVE = True
+    SAMPLER_USES_RESULT = False
+    reconstruct = staticmethod(reconstruct)
+    sample_map = staticmethod(reprojected_sample_map)
+
+
+#: var with Algorithm 2's sampler (a ``core.method.Method``)
+REPROJECT = _VarReproject()

@@ -1,4 +1,5 @@
-"""Reprojection (core/reproject.py): Schalk 2018 Sec. 3.2-3.3, Algorithm 2.
+"""Reprojection (core/reproject.py): Schalk 2018 Sec. 3.2-3.3; Algorithm 2's sampler
+(core/var.py, ``var.REPROJECT``) on reprojected probabilities.
 
 A synthetic scene (ground plane z = 0 and a box standing on it) is ray cast
 through pixel centres, so first-hit positions, depths and object indices are
@@ -545,20 +546,20 @@ def test_algorithm2_sample_map_gives_priority_to_non_reprojected():
     prob = np.full((H, W), np.nan)
     prob[:, W // 2:] = 0.25                      # right half carries probabilities
     vp = var.Params(min_spp=4, max_spp=16)
-    pr = rp.sampling_priority(buf, prob, vp)
+    pr = var.sampling_priority(buf, prob, vp)
     assert (pr[:, W // 2:] == -1).all() and (pr[:, :W // 2] > 0).all()
     state = {"probability": prob}
-    m = rp.sample_map(buf, None, 3000, vp, state)
+    m = var.REPROJECT.sample_map(buf, None, 3000, vp, state)
     assert m.sum() == 3000 and m.min() >= 0
     assert m[:, W // 2:].sum() == 0              # threshold phase: reprojected pixels wait
     # once max_spp is reached, carried probabilities are kept and everyone samples
-    m2 = rp.sample_map(buf, None, 40 * H * W, vp, state)
+    m2 = var.REPROJECT.sample_map(buf, None, 40 * H * W, vp, state)
     assert m2.sum() == 40 * H * W
     np.testing.assert_allclose(state["prob"][:, W // 2:], 0.25)
     assert m2[:, W // 2:].sum() > 0
     # no probabilities: identical to var's Algorithm 1 map
     s1, s2 = {"seed": 3}, {"seed": 3}
-    np.testing.assert_array_equal(rp.sample_map(buf, None, 5000, vp, s1),
+    np.testing.assert_array_equal(var.REPROJECT.sample_map(buf, None, 5000, vp, s1),
                                   var.sample_map(buf, None, 5000, vp, s2))
 
 
@@ -577,3 +578,53 @@ def test_resolution_change_between_frames():
     assert ok.mean() > 0.9
     np.testing.assert_array_equal(res.target[ok], ((3 * rows + 1) * wb + 3 * cols + 1)[ok])
     assert res.buffers.shape == (hb, wb) and res.fraction == pytest.approx(ok.sum() / (hb * wb))
+
+
+def _camera_point(proj, ndc_x, ndc_y, depth=5.0):
+    """Camera-space point at ``depth`` in front of the camera whose full-frame
+    NDC under ``proj`` is (ndc_x, ndc_y): solves proj[i] . v = ndc_i proj[3] . v
+    (i = x, y) for v = (X, Y, -depth, 1)."""
+    a = np.array([[proj[0, 0] - ndc_x * proj[3, 0], proj[0, 1] - ndc_x * proj[3, 1]],
+                  [proj[1, 0] - ndc_y * proj[3, 0], proj[1, 1] - ndc_y * proj[3, 1]]])
+    z = -depth
+    rhs = -np.array([(proj[0, 2] - ndc_x * proj[3, 2]) * z + proj[0, 3] - ndc_x * proj[3, 3],
+                     (proj[1, 2] - ndc_y * proj[3, 2]) * z + proj[1, 3] - ndc_y * proj[3, 3]])
+    x, y = np.linalg.solve(a, rhs)
+    return np.array([x, y, z, 1.0])
+
+
+def test_crop_projection_maps_the_domain_to_ndc():
+    """A render border: the cropped projection maps the domain's corners to
+    NDC -1/+1 (the full frame's pixel edge col lies at NDC 2 col / W - 1, row at
+    1 - 2 row / H), and Camera.from_render places a point at its full-frame
+    pixel minus the domain's origin."""
+    wf, hf = 64, 48
+    proj = rp.perspective(FOV, wf, hf, shift_x=0.1, shift_y=-0.05)
+    np.testing.assert_array_equal(rp.crop_projection(proj, wf, hf, (0, 0, wf, hf)), proj)
+    x0, y0, x1, y1 = 10, 7, 41, 30
+    crop = rp.crop_projection(proj, wf, hf, (x0, y0, x1, y1))
+    for col, row, want in ((x0, y0, (-1.0, 1.0)), (x1, y0, (1.0, 1.0)),
+                           (x0, y1, (-1.0, -1.0)), (x1, y1, (1.0, -1.0))):
+        v = _camera_point(proj, 2 * col / wf - 1, 1 - 2 * row / hf)
+        clip = crop @ v
+        np.testing.assert_allclose(clip[:2] / clip[3], want, atol=1e-12)
+    # the whole camera from the executor's record: full-frame pixel (r, c) -> (r - y0, c - x0)
+    view = rp.look_at(EYE, LOOK)
+    info = {"world_to_camera": view, "projection": proj, "position": np.linalg.inv(view)[:3, 3],
+            "width": wf, "height": hf, "domain": (x0, y0, x1, y1)}
+    cam = rp.Camera.from_render(info)
+    np.testing.assert_array_equal(cam.proj, crop)
+    np.testing.assert_array_equal(cam.view, view)
+    full = rp.Camera(view, proj)
+    world = np.linalg.inv(view) @ _camera_point(proj, 2 * 20.25 / wf - 1, 1 - 2 * 15.5 / hf)
+    r0, c0, _ = full.pixel_coordinates(full.clip(world[None, :3]), hf, wf)
+    r1, c1, ok = cam.pixel_coordinates(cam.clip(world[None, :3]), y1 - y0, x1 - x0)
+    assert ok.all()
+    np.testing.assert_allclose([r0[0], c0[0]], [15.5, 20.25], atol=1e-9)
+    np.testing.assert_allclose([r1[0], c1[0]], [15.5 - y0, 20.25 - x0], atol=1e-9)
+
+
+def test_reproject_holds_the_geometry_only():
+    """Algorithm 2's sampler lives in core.var (REPROJECT), next to Algorithm 1."""
+    for name in ("sample_map", "sampling_priority", "_has_probability"):
+        assert not hasattr(rp, name), name

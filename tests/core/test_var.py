@@ -9,7 +9,7 @@ from hypothesis import given, settings, strategies as st
 
 from core import var
 from core.buffers import LUMA, Buffers
-from core.method import MethodResult, params_from_dict
+from core.method import Method, MethodResult, params_from_dict
 
 H, W = 24, 24
 N = H * W
@@ -120,6 +120,41 @@ def test_params_defaults_and_metadata():
     assert params_from_dict(var.Params, {"min_spp": 2, "bogus": 1}).min_spp == 2
     with pytest.raises(ValueError):
         params_from_dict(var.Params, {"min_spp": 0})
+
+
+def test_method_contract():
+    """var and var-reproject (Algorithm 2) declare the Method members; their
+    samplers ignore ``result``, so SAMPLER_USES_RESULT is False."""
+    assert isinstance(var, Method)
+    assert (var.NAME, var.ADAPTIVE, var.SAMPLER_USES_RESULT) == ("var", True, False)
+    m = var.REPROJECT
+    assert isinstance(m, Method)
+    assert (m.NAME, m.ADAPTIVE, m.SAMPLER_USES_RESULT) == ("var-reproject", True, False)
+    assert m.PASSES == var.PASSES and m.Params is var.Params
+    assert m.reconstruct is var.reconstruct and m.sample_map is var.reprojected_sample_map
+    assert "state[\"probability\"]" in type(m).__doc__
+    rng = np.random.default_rng(8)
+    buf = Buffers.from_subsets([class_means(np.ones((H, W), int), rng) for _ in range(4)], [1] * 4)
+    r = var.reconstruct(buf)
+    prob = np.full((H, W), np.nan)
+    prob[::2] = 0.5
+    for f, extra in ((var.sample_map, {}), (var.REPROJECT.sample_map, {"probability": prob})):
+        for budget in (N // 2, 50 * N):
+            a = f(buf, None, budget, var.Params(), dict(extra, seed=1))
+            b = f(buf, r, budget, var.Params(), dict(extra, seed=1))
+            np.testing.assert_array_equal(a, b)
+
+
+def test_denoise_unified_signature():
+    rng = np.random.default_rng(9)
+    buf = Buffers.from_subsets([class_means(np.full((H, W), 2), rng) for _ in range(3)], [2, 2, 2])
+    r = var.reconstruct(buf)
+    d = var.denoise(buf.color.mean, buf.variance_of_mean(), features={"albedo": buf.color.mean},
+                    feature_var=None, n=buf.n, params=var.Params())
+    np.testing.assert_array_equal(d.image, r.image)
+    np.testing.assert_array_equal(d.error, r.error)
+    assert d.info == r.info
+    assert "spp_mean" not in var.denoise(buf.color.mean, buf.variance_of_mean()).info
 
 
 # ------------------------------------------------------------ equations
