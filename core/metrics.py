@@ -4,6 +4,9 @@ from __future__ import annotations
 
 import numpy as np
 
+#: the relMSE denominator's epsilon
+REL_EPS = 0.01
+
 
 def relmse(x: np.ndarray, ref: np.ndarray) -> float:
     """relMSE = mean over pixels and RGB channels of (x - r)^2 / (r^2 + 0.01).
@@ -14,9 +17,15 @@ def relmse(x: np.ndarray, ref: np.ndarray) -> float:
     x = np.asarray(x, np.float64)[..., :3]
     r = np.asarray(ref, np.float64)[..., :3]
     _check(x, r)
-    e = (x - r) ** 2 / (r * r + 0.01)
+    e = relative_squared_error(x, r)
     e = np.where(np.isfinite(e), e, 1e6)
     return float(e.mean())
+
+
+def relative_squared_error(x: np.ndarray, r: np.ndarray) -> np.ndarray:
+    """Per channel ``(x - r)^2 / (r^2 + 0.01)``, the term relMSE averages
+    (no checks: callers validate shapes and decide what non-finite means)."""
+    return (x - r) ** 2 / (r * r + REL_EPS)
 
 
 def per_pixel_relmse(x: np.ndarray, ref: np.ndarray) -> np.ndarray:
@@ -24,8 +33,7 @@ def per_pixel_relmse(x: np.ndarray, ref: np.ndarray) -> np.ndarray:
     x = np.asarray(x, np.float64)[..., :3]
     r = np.asarray(ref, np.float64)[..., :3]
     _check(x, r)
-    e = (x - r) ** 2 / (r * r + 0.01)
-    return np.where(np.isfinite(e), e, 1e6).mean(axis=-1)
+    return np.where(np.isfinite(e := relative_squared_error(x, r)), e, 1e6).mean(axis=-1)
 
 
 def smape(x: np.ndarray, ref: np.ndarray) -> float:

@@ -12,7 +12,7 @@ Map (:func:`oracle_weights`)
 ----------------------------
 For the current reconstruction ``x`` and the reference ``r`` (both (H, W, 3)):
 
-* true relative squared error, the quantity relMSE averages (DESIGN.md)::
+* true relative squared error, the quantity relMSE averages (``core/metrics.py``)::
 
       e_i = mean_c (x_ic - r_ic)^2 / (r_ic^2 + 0.01)
 
@@ -40,10 +40,9 @@ import numpy as np
 
 from . import method as _method
 from .filters import box_mean_finite
+from .metrics import relative_squared_error
 from .method import MethodResult, allocate, sampling_gain
 
-#: the relMSE denominator's epsilon (DESIGN.md)
-REL_EPS = 0.01
 
 
 def true_relative_error(image: np.ndarray, reference: np.ndarray) -> np.ndarray:
@@ -62,7 +61,7 @@ def true_relative_error(image: np.ndarray, reference: np.ndarray) -> np.ndarray:
     ref_ok = np.isfinite(r).all(axis=-1)
     r0 = np.where(np.isfinite(r), r, 0.0)
     with np.errstate(over="ignore", invalid="ignore"):
-        e = (x - r0) ** 2 / (r0 * r0 + REL_EPS)
+        e = relative_squared_error(x, r0)
     bad = ~np.isfinite(e)
     fin = e[~bad]
     top = float(fin.max()) if fin.size else 0.0

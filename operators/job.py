@@ -73,8 +73,13 @@ class RenderJob:
 
     def __init__(self, scene, view_layer, options: Options, out: str, reference: str | None = None,
                  overwrite: bool = False, resume: bool = False, preview: bool = True,
-                 keep_checkpoint: bool = False):
+                 keep_checkpoint: bool = False, method=None, prior=None, reconstructor=None):
+        """``method``: a :class:`core.method.Method` object (default: the
+        registered ``options.method``); ``prior``: the run's source of carried
+        samples (``core.pipeline.Prior``); ``reconstructor(run) -> MethodResult``
+        replaces the method's final reconstruction (LP's temporal extension)."""
         from ..addon import executor as ex
+        from ..core import methods
         self.ex = ex
         ex.check_scene(scene, view_layer)
         self.scene, self.view_layer = scene, view_layer
@@ -95,24 +100,23 @@ class RenderJob:
         self.reference_path = reference
         self.run: AdaptiveRun | None = None
         self.executor = None
-        self.prior = None          # callable(run) -> Buffers of reused samples (frame ranges)
-        self.reconstructor = None  # callable(run) -> MethodResult replacing run.reconstruct()
+        self.method = methods.get(options.method) if method is None else method
+        self.prior = prior
+        self.reconstructor = reconstructor
         self.camera = None         # camera matrices of the rendered frame
-        self.reproject_info: dict = {}
         self.result = None         # the final MethodResult, once finish() ran
         self.t0 = time.perf_counter()
         self.summary: dict | None = None
 
     def steps(self):
-        from ..core import methods
-        method = methods.get(self.options.method)
         self.executor = self.ex.CyclesExecutor(self.scene, self.view_layer,
-                                               tuple(method.PASSES) + tuple(self.options.features),
+                                               tuple(self.method.PASSES) + tuple(self.options.features),
                                                seed=self.options.seed)
         self.reference = load_reference(self.reference_path, self.executor.size)
         with self.executor:
             self.camera = self.executor.camera_info(self.options.frame)
-            self.run = AdaptiveRun(self.executor, self.options, checkpoint=self.ckpt, prior=self.prior)
+            self.run = AdaptiveRun(self.executor, self.options, checkpoint=self.ckpt, prior=self.prior,
+                                   method=self.method)
             if self.resume:
                 try:
                     self.run.load_checkpoint(self.ckpt)
@@ -177,7 +181,7 @@ class RenderJob:
         for k, v in result.info.items():
             if isinstance(v, (int, float, str, bool)):
                 summary[k] = v
-        for k, v in self.reproject_info.items():
+        for k, v in run.prior_info.items():
             if isinstance(v, (int, float, str, bool)):
                 summary[f"reproject_{k}"] = v
         if self.reference is not None:
@@ -228,35 +232,6 @@ def parse_frames(text: str, scene) -> list:
     return list(range(a, b + 1, step))
 
 
-def crop_projection(cam: dict) -> np.ndarray:
-    """Camera-to-clip matrix of the rendered domain (the scene's border, if
-    any): Blender's projection covers the full frame; this maps the domain's
-    pixels to NDC [-1, 1] (x' = a x + b w in clip space)."""
-    w_full, h_full = cam["width"], cam["height"]
-    x0, y0, x1, y1 = cam["domain"]
-    w, h = x1 - x0, y1 - y0
-    crop = np.eye(4)
-    crop[0, 0], crop[0, 3] = w_full / w, (w_full - 2 * x0) / w - 1.0
-    crop[1, 1], crop[1, 3] = h_full / h, 1.0 - (h_full - 2 * y0) / h
-    return crop @ cam["projection"]
-
-
-def to_camera(cam: dict):
-    from ..core import reproject
-    return reproject.Camera(cam["world_to_camera"], crop_projection(cam), cam["position"])
-
-
-class _ReprojectVar:
-    """The var method with Algorithm 2's sampler (Schalk 2018): pixels that were
-    not reprojected are sampled first (core/reproject.py ``sample_map``)."""
-
-    def __init__(self):
-        from ..core import reproject, var
-        self.PASSES, self.Params, self.ADAPTIVE = var.PASSES, var.Params, True
-        self.reconstruct = var.reconstruct
-        self.sample_map = reproject.sample_map
-
-
 class FramesJob:
     """Adaptive render of a frame range, one RenderJob per frame.
 
@@ -268,7 +243,7 @@ class FramesJob:
       accumulated samples are forward-reprojected into it where valid (Schalk
       2018 Sec. 3.2-3.3, core/reproject.py) and merged; reused samples do not
       count against the frame's budget; with ``var`` the sampler is Algorithm
-      2's (not-reprojected pixels first);
+      2's (``core.var.REPROJECT``: not-reprojected pixels first);
     - ``"lp"``: LP's temporal extension (Moon 2015 Sec. 6, core/temporal.py):
       per-pixel lambda-weighted RLS over frames on top of each frame's LP
       reconstruction (method must be ``lp``).
@@ -309,12 +284,16 @@ class FramesJob:
             if self.temporal != "none":
                 opts.features = tuple(dict.fromkeys(tuple(opts.features) + REPROJECT_PASSES))
             ref = frame_path(self.reference_pattern, f) if self.reference_pattern else None
-            self.job = RenderJob(self.scene, self.view_layer, opts, frame_path(self.out_pattern, f),
-                                 reference=ref, **self.job_kw)
+            kw = dict(self.job_kw)
             if self.temporal == "reproject":
-                self.job.prior = self._reproject_prior
+                kw["prior"] = self._reproject_prior
+                if self.options.method == "var" and self._prev is not None:
+                    from ..core import var
+                    kw["method"] = var.REPROJECT
             elif self.temporal == "lp":
-                self.job.reconstructor = self._lp_temporal
+                kw["reconstructor"] = self._lp_temporal
+            self.job = RenderJob(self.scene, self.view_layer, opts, frame_path(self.out_pattern, f),
+                                 reference=ref, **kw)
             for p in self.job.steps():
                 p.message = f"frame {f} ({i + 1}/{len(self.frames)}): {p.message}"
                 p.fraction = (i + p.fraction) / len(self.frames)
@@ -324,8 +303,12 @@ class FramesJob:
             self._prev = (self.job.run.buffers, self.job.camera, self.job.run.method_state)
             yield summary
 
-    def _reproject_prior(self, run):
+    def _reproject_prior(self, buffers):
+        """The previous frame's samples forward-reprojected into this frame
+        (``core/reproject.py``), with Algorithm 2's carried probabilities for
+        var, as the run's :class:`core.pipeline.Prior`."""
         from ..core import reproject
+        from ..core.pipeline import Prior
         if self._prev is None:
             return None
         prev_buf, prev_cam, prev_state = self._prev
@@ -335,15 +318,13 @@ class FramesJob:
             if prob is None or np.shape(prob) != prev_buf.shape:
                 prob = np.full(prev_buf.shape, np.nan)
             extra = {"probability": np.asarray(prob, np.float64)}
-        res = reproject.reproject(prev_buf, to_camera(prev_cam), run.buffers, to_camera(self.job.camera),
+        camera = reproject.Camera.from_render
+        res = reproject.reproject(prev_buf, camera(prev_cam), buffers, camera(self.job.camera),
                                   params=self.reproject_params, extra=extra)
-        if self.options.method == "var":
-            run.method = _ReprojectVar()
-            run.method_state["probability"] = res.extra["probability"]
         info = {"fraction": res.fraction}
         info.update({k: v for k, v in res.counts.items() if isinstance(v, (int, float))})
-        self.job.reproject_info = info
-        return res.buffers
+        state = {"probability": res.extra["probability"]} if self.options.method == "var" else {}
+        return Prior(res.buffers, state, info)
 
     def _lp_temporal(self, run):
         """Final reconstruction of a frame with LP's temporal extension."""
@@ -352,7 +333,8 @@ class FramesJob:
         center = None
         if self._prev is not None:
             prev_buf, prev_cam, _ = self._prev
-            center = reproject.backward_coordinates(to_camera(prev_cam), to_camera(self.job.camera),
+            center = reproject.backward_coordinates(reproject.Camera.from_render(prev_cam),
+                                                    reproject.Camera.from_render(self.job.camera),
                                                     run.buffers, prev_buf.shape)
         res = temporal.step(self._temporal_state, run.buffers, self.temporal_params,
                             frame=self.job.options.frame, static=static, center=center)

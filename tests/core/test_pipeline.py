@@ -118,11 +118,11 @@ def test_bad_options_are_refused():
 
 def test_awr_loop_does_not_reconstruct_per_iteration(monkeypatch):
     """AWR's sampler reads the noisy means (Eq. 8), not the reconstruction, so
-    the loop reconstructs only when asked for the final image; var's sampler
-    uses it and gets one per iteration."""
-    from core import awr, var
-    calls = {"awr": 0, "var": 0}
-    for name, mod in (("awr", awr), ("var", var)):
+    the loop reconstructs only when asked for the final image (var's sampler
+    does not read it either); LP's sampler uses it and gets one per iteration."""
+    from core import awr, lp, var
+    calls = {"awr": 0, "var": 0, "lp": 0}
+    for name, mod in (("awr", awr), ("var", var), ("lp", lp)):
         orig = mod.reconstruct
 
         def counting(buf, params=None, _orig=orig, _name=name):
@@ -131,8 +131,14 @@ def test_awr_loop_does_not_reconstruct_per_iteration(monkeypatch):
         monkeypatch.setattr(mod, "reconstruct", counting)
     runs = {m: _run(16, 16, method=m, spp=12, initial_spp=4, subsets=4, task_cost=0)[0]
             for m in ("awr", "var")}
+    feats = {p: np.random.default_rng(3).random((16, 16, 1 if p == "depth" else 3)) for p in lp.PASSES}
+    runs["lp"] = AdaptiveRun(FakeExecutor(_truth(16, 16), feats),
+                             Options(method="lp", spp=12, initial_spp=4, subsets=4, task_cost=0))
+    for _ in runs["lp"].steps():
+        pass
     assert calls["awr"] == 0 and runs["awr"].iteration >= 2
-    assert calls["var"] == runs["var"].iteration >= 2
+    assert calls["var"] == 0 and runs["var"].iteration >= 2
+    assert calls["lp"] == runs["lp"].iteration >= 2
     runs["awr"].reconstruct()
     assert calls["awr"] == 1
 
