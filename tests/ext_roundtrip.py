@@ -37,8 +37,15 @@ s.output_path = out.replace(".exr", "_####.exr")
 result_range = bpy.ops.cycles_adaptive.render()
 range_files = [os.path.isfile(out.replace(".exr", f"_{f:04d}.exr")) for f in (1, 2)]
 images = sorted(i.name for i in bpy.data.images if i.name.startswith("Cycles Adaptive"))
+# the installed command line offers what works installed: render and denoise
+import argparse  # noqa: E402
+import importlib  # noqa: E402
+cli = importlib.import_module(f"bl_ext.{repo.module}.cycles_adaptive.operators.cli")
+parser = cli.build_parser(blender_command=True)
+commands = sorted(next(a for a in parser._actions if isinstance(a, argparse._SubParsersAction)).choices)
 print("RESULT " + json.dumps({"op": sorted(result), "exists": os.path.isfile(out),
                               "png": os.path.isfile(os.path.splitext(out)[0] + ".png"),
                               "images": images, "status": s.status,
                               "range_op": sorted(result_range), "range_files": range_files,
-                              "border_restored": not scene.render.use_border}))
+                              "border_restored": not scene.render.use_border,
+                              "commands": commands}))

@@ -31,7 +31,9 @@ def test_build_validate_install_and_run_operator(tmp_path):
     import zipfile
     names = zipfile.ZipFile(zips[0]).namelist()
     assert "blender_manifest.toml" in names and "core/pipeline.py" in names
-    assert not any(n.startswith(("tests/", ".venv", "sample_blends/")) for n in names)
+    assert not any(n.startswith(("tests/", ".venv", "sample_blends/", "bench/", "tools/", "docs/"))
+                   for n in names)
+    assert not any("references" in n or "bench" in n for n in names), names
 
     out = str(tmp_path / "op.exr")
     repo_dir = tmp_path / "repo"
@@ -46,3 +48,4 @@ def test_build_validate_install_and_run_operator(tmp_path):
     assert res["images"] == ["Cycles Adaptive Error", "Cycles Adaptive Result", "Cycles Adaptive Samples"]
     assert res["border_restored"]
     assert res["range_op"] == ["FINISHED"] and res["range_files"] == [True, True], res
+    assert res["commands"] == ["denoise", "render"], res
