@@ -11,6 +11,11 @@ and tests may use any object with the same two members:
                                color (h, w, 4) or (h, w, 3) float mean of the
                                task's samples, features a dict pass -> (h, w, C)
 
+and optionally ``render_many(tasks) -> iterator of (color, features)``, which
+may render an iteration's tasks in parallel (e.g. on farm workers) but yields
+the results in task order: the loop merges them in that order, so the image
+does not depend on which executor rendered it.
+
 ``AdaptiveRun.steps()`` is a generator of ``Progress`` records, so the modal
 operator (a timer steps it), the batch CLI (a for loop printing lines) and the
 tests share one function.  ``finish()`` reconstructs from whatever has been
@@ -242,8 +247,7 @@ class AdaptiveRun:
             yield Progress("plan", self.iteration, self._fraction(),
                            f"iteration {self.iteration + 1}: {len(tasks)} region tasks, "
                            f"{int(covered.sum())} samples", 0, len(tasks))
-            for i, task in enumerate(tasks):
-                self._render_task(task)
+            for i, task in enumerate(self._render_tasks(tasks)):
                 yield Progress("render", self.iteration, self._fraction(),
                                f"iteration {self.iteration + 1}: task {i + 1}/{len(tasks)}",
                                i + 1, len(tasks))
@@ -280,12 +284,31 @@ class AdaptiveRun:
     def _render_task(self, task) -> None:
         t0 = time.perf_counter()
         color, feats = self.executor.render(task)
-        dt = time.perf_counter() - t0
-        self.timing.render += dt
+        self.timing.render += time.perf_counter() - t0
+        self._merge(task, color, feats)
+
+    def _merge(self, task, color, feats) -> None:
         t0 = time.perf_counter()
         merge_render(self.buffers, task, color, feats)
         self.tasks_rendered += 1
         self.timing.overhead += time.perf_counter() - t0
+
+    def _render_tasks(self, tasks):
+        """Render and merge ``tasks`` in order (through the executor's
+        ``render_many`` when it has one); yields each task once merged."""
+        many = getattr(self.executor, "render_many", None)  # optional member, see module notes
+        if many is None:
+            for task in tasks:
+                self._render_task(task)
+                yield task
+            return
+        results = iter(many(tasks))
+        for task in tasks:
+            t0 = time.perf_counter()
+            color, feats = next(results)
+            self.timing.render += time.perf_counter() - t0
+            self._merge(task, color, feats)
+            yield task
 
     def _plan_iteration(self, result, budget: int):
         """Ask the method for ``budget`` samples and plan them into tasks.
