@@ -277,7 +277,7 @@ def render_reference(scene_path_: str, frame: int, resolution_percentage: int, s
     return rec
 
 
-def load_reference(path: str, shape=None) -> tuple:
+def load_checked_reference(path: str, shape=None) -> tuple:
     """(rgb (H, W, 3) float64, sidecar dict) of a checked reference
     (:func:`check_reference`, then :func:`core.io.read_reference`).
 

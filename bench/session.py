@@ -181,7 +181,7 @@ class Session:
         try:
             with ex.CyclesExecutor(scene, vl, (), seed=cfg["seed"]) as exe:
                 size = exe.size
-            ref, ref_rec = refs.load_reference(ref_path, size)
+            ref, ref_rec = refs.load_checked_reference(ref_path, size)
             out = {"status": "ok", "file": path, "frame": frame, "width": size[1], "height": size[0],
                    "reference": {"path": ref_path, **{k: ref_rec.get(k) for k in (
                        "spp", "seed", "blender", "noise_relmse", "render_seconds", "created")}},

@@ -73,7 +73,7 @@ def frames(scene, count, seed=0, ref_dir=None):
     sc = bpy.context.scene
     ref_path = refs.reference_path(scene, sc.frame_current, 100, refs.DEFAULT_SPP, ref_dir)
     try:
-        ref, _ = refs.load_reference(ref_path)
+        ref, _ = refs.load_checked_reference(ref_path)
     except refs.ReferenceFileError as exc:
         sys.exit(str(exc))
     with CyclesExecutor(sc, bpy.context.view_layer, (), seed=seed) as ex:
