@@ -514,8 +514,9 @@ class _VarReproject:
     Same Params, passes and reconstruction (the sample mean) as ``var``; its
     sampler, :func:`reprojected_sample_map`, reads the reprojected per-pixel
     probability from ``state["probability"]`` ((H, W), NaN where the pixel
-    carries none; the frame loop writes ``Reprojection.extra['probability']``
-    there after reprojecting) and samples the pixels without one first.
+    carries none; the frame job hands ``Reprojection.extra['probability']`` to
+    the run as its ``core.pipeline.Prior`` state) and samples the pixels
+    without one first.
     """
 
     NAME = "var-reproject"
