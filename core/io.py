@@ -15,8 +15,8 @@ import numpy as np
 try:  # OpenImageIO is a hard dependency, but fail with a clear message.
     import OpenImageIO as oiio
 except ImportError as exc:  # pragma: no cover - exercised only on broken installs
-    raise ImportError("OpenImageIO is required (pip install OpenImageIO); "
-                      "run the README's setup command") from exc
+    raise ImportError("OpenImageIO is missing: install the extension zip built for this platform "
+                      "(docs/install.md), or pip install OpenImageIO for the command line") from exc
 
 
 class ImageFileError(Exception):
