@@ -13,7 +13,7 @@ import json
 import os
 import sys
 import time
-from dataclasses import MISSING, fields
+from dataclasses import MISSING
 
 from ..core import methods
 from ..core.method import fields_by_name
@@ -69,11 +69,13 @@ def method_params(args, method: str) -> dict:
     return {k[len(prefix):]: v for k, v in vars(args).items() if k.startswith(prefix) and v is not None}
 
 
-def options_from_args(args, **fixed) -> Options:
-    """Options from the generated flags (only those given) plus ``fixed``."""
+def options_from_args(args, method: str, frame: int) -> Options:
+    """Options from the generated flags (only those given) and the method's
+    flags, through :func:`operators.job.make_options` (the API's path too)."""
+    from .job import make_options
     given = {f.name: getattr(args, f.name) for f in option_fields("cli")
              if getattr(args, f.name, None) is not None}
-    return Options(**given, **fixed)
+    return make_options(method, frame, given, method_params(args, method))
 
 
 def build_parser(blender_command: bool = False, extra_commands=()) -> argparse.ArgumentParser:
@@ -159,30 +161,6 @@ def _is_user_error(exc) -> bool:
     return isinstance(exc, (UserError, JobError, SceneError, ImageFileError, ValueError, FileNotFoundError))
 
 
-def open_blend(path: str):
-    import bpy
-    if not os.path.isfile(path):
-        raise UserError(f"{path}: no such .blend file")
-    try:
-        bpy.ops.wm.open_mainfile(filepath=os.path.abspath(path), load_ui=False)
-    except RuntimeError as exc:
-        raise UserError(f"{path}: cannot open ({str(exc).strip().splitlines()[-1]})") from None
-
-
-def resolve_scene(args):
-    import bpy
-    scene = bpy.data.scenes.get(args.scene) if args.scene else bpy.context.scene
-    if scene is None:
-        raise UserError(f"no scene named {args.scene!r} (have {', '.join(s.name for s in bpy.data.scenes)})")
-    if args.view_layer:
-        vl = scene.view_layers.get(args.view_layer)
-        if vl is None:
-            raise UserError(f"no view layer {args.view_layer!r} in scene {scene.name!r}")
-    else:
-        vl = bpy.context.view_layer if bpy.context.scene == scene else scene.view_layers[0]
-    return scene, vl
-
-
 def default_out(blend_path: str, method: str, suffix: str = "") -> str:
     stem = os.path.splitext(os.path.abspath(blend_path))[0]
     return f"{stem}.{method}{suffix}.exr"
@@ -190,19 +168,16 @@ def default_out(blend_path: str, method: str, suffix: str = "") -> str:
 
 def cmd_render(args, blender_command=False) -> int:
     import bpy
-    from .job import RenderJob
+    from .job import RenderJob, check_resolution_percentage, open_blend, resolve_scene
     if args.blend:
         open_blend(args.blend)
     elif not bpy.data.filepath and not blender_command:
         raise UserError("no .blend file given")
-    scene, vl = resolve_scene(args)
+    scene, vl = resolve_scene(args.scene, args.view_layer)
     if args.resolution_percentage is not None:
-        if not 1 <= args.resolution_percentage <= 10000:
-            raise UserError("--resolution-percentage must be between 1 and 10000")
-        scene.render.resolution_percentage = args.resolution_percentage
+        scene.render.resolution_percentage = check_resolution_percentage(args.resolution_percentage)
     frame = scene.frame_current if args.frame is None else args.frame
-    opts = options_from_args(args, method=args.method, frame=frame,
-                             params=method_params(args, args.method))
+    opts = options_from_args(args, args.method, frame)
     if args.frames:
         return _render_frames(args, scene, vl, opts)
     out = args.out or default_out(bpy.data.filepath or "untitled.blend", args.method)
@@ -256,45 +231,19 @@ def bpy_filepath() -> str:
 
 
 def cmd_denoise(args) -> int:
-    import numpy as np
+    """``denoise``: :func:`operators.job.denoise_output` (the API's
+    ``denoise`` too), then the EXR written."""
     from ..core import io as imageio
-    from ..core import metrics
-    from ..core.method import consistency_guard, params_from_dict
-    from ..core.resources import peak_rss_mb
-    from ..core.storage import buffers_from_passes, buffers_to_passes
-    from .job import JobError, load_reference
+    from .job import denoise_output, write_output
     t0 = time.perf_counter()
     out = os.path.abspath(args.out or os.path.splitext(args.passes)[0] + f".{args.method}.exr")
     imageio.check_writable(out, args.overwrite)
-    passes, meta = imageio.read_layers(args.passes)
-    buf = buffers_from_passes(passes, args.passes)
-    method = methods.get(args.method)
-    missing = [f for f in method.PASSES if f not in buf.features]
-    if missing:
-        raise JobError(f"{args.passes}: method {args.method} needs the {missing[0]} pass, "
-                       f"which the file lacks (have {', '.join(sorted(buf.features)) or 'none'})")
-    ref = load_reference(args.reference, buf.shape)
-    params = params_from_dict(method.Params, method_params(args, args.method))
-    t1 = time.perf_counter()
-    guard_z = Options().guard_z if args.guard_z is None else args.guard_z
-    result = consistency_guard(method.reconstruct(buf, params), buf, guard_z)
-    t_rec = time.perf_counter() - t1
-    image = np.where(np.isfinite(result.image), result.image, 0.0)
-    error = np.where(np.isfinite(result.error), result.error, 0.0)
-    out_passes = buffers_to_passes(buf, image, error)
-    imageio.write_layers(out, out_passes, layer=meta.get("layer") or "ViewLayer",
-                         attributes={"cycles_adaptive/method": args.method})
-    h, w = buf.shape
-    summary = {"method": args.method, "width": w, "height": h,
-               "spp_mean": float(buf.n.mean()), "render_seconds": 0.0,
-               "reconstruct_seconds": t_rec, "total_seconds": time.perf_counter() - t0,
-               "regions": 0, "peak_rss_mb": peak_rss_mb(), "out": out}
-    for k, v in result.info.items():
-        if isinstance(v, (int, float, str, bool)):
-            summary[k] = v
-    if ref is not None:
-        summary.update(metrics.summary(image, error, ref))
-    _report(summary, args.json)
+    output = denoise_output(args.passes, args.method, method_params(args, args.method), args.guard_z,
+                            reference=args.reference)
+    write_output(output, out)
+    output.summary["total_seconds"] = time.perf_counter() - t0
+    output.summary["out"] = out
+    _report(output.summary, args.json)
     return EXIT_OK
 
 

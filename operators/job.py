@@ -1,6 +1,11 @@
-"""One adaptive render job: scene -> loop -> outputs.  The same generator runs
-behind the CLI (``./cycles-adaptive render``, ``blender -c cycles_adaptive``)
-and the modal UI operator.
+"""One adaptive render job: scene -> loop -> result -> outputs.  The same
+generator runs behind the CLI (``./cycles-adaptive render``, ``blender -c
+cycles_adaptive``), the modal UI operator and the Python API (``api.py``).
+
+A job first produces an :class:`Output` (the EXR passes, attributes and the
+summary dict) without touching the disk; writing it is a separate step
+(:func:`write_output`), which the CLI and the operator take at once and the API
+takes on ``Result.save``.
 
 Outputs (written atomically; an existing file is never replaced unless
 ``overwrite``):
@@ -11,21 +16,24 @@ Outputs (written atomically; an existing file is never replaced unless
   feature pass: all that ``denoise`` needs to re-run any method later.
 - ``OUT.png``: preview in the scene's view transform.
 - ``OUT.exr.checkpoint.npz`` after every iteration, removed after a complete
-  run, kept after a cancel so ``--resume`` continues.
+  run, kept after a cancel so ``--resume`` continues.  A job without ``out``
+  (the API's) writes no checkpoint and nothing else.
 """
 from __future__ import annotations
 
 import json
 import os
 import time
+from dataclasses import dataclass, fields
 
 import numpy as np
 
 from ..core import io as imageio
-from ..core import metrics
-from ..core.pipeline import AdaptiveRun, Options
+from ..core import methods, metrics
+from ..core.method import consistency_guard, params_from_dict
+from ..core.pipeline import AdaptiveRun, Options, option_fields
 from ..core.resources import peak_rss_mb
-from ..core.storage import buffers_to_passes
+from ..core.storage import buffers_from_passes, buffers_to_passes
 
 OUTPUT_VERSION = "1"
 
@@ -63,39 +71,205 @@ def pad_to_frame(arr: np.ndarray, domain, full_size) -> np.ndarray:
     return out
 
 
+# ================================================================ options
+def make_options(method: str, frame: int, settings: dict | None = None,
+                 params: dict | None = None) -> Options:
+    """The one place user arguments become :class:`Options` (CLI flags and
+    API keywords alike).  ``settings``: loop settings (fields of ``Options``
+    offered on the command line, e.g. ``spp``, ``initial_spp``); ``params``:
+    the method's parameters (fields of its ``Params``).  JobError (one line)
+    names an unknown method, setting or parameter, or a value out of range."""
+    try:
+        mod = methods.get(method)
+    except ValueError as exc:
+        raise JobError(str(exc)) from None
+    known = {f.name: f for f in option_fields("cli")}
+    for name in settings or {}:
+        if name not in known:
+            raise JobError(f"unknown loop setting {name!r} (have {', '.join(known)})")
+    _check_param_names(method, mod.Params, params or {})
+    own = {f.name: f for f in fields(mod.Params)}
+    settings = {k: _typed(known[k], v, "option") for k, v in (settings or {}).items()}
+    params = {k: _typed(own[k], v, f"{method} parameter") for k, v in (params or {}).items()}
+    try:
+        opts = Options(method=method, frame=int(frame), params=params, **settings)
+        params_from_dict(mod.Params, params)  # range check now, before any render
+    except (ValueError, TypeError) as exc:
+        raise JobError(str(exc)) from None
+    return opts
+
+
+def split_keywords(method: str, keywords: dict) -> tuple[dict, dict]:
+    """(settings, params) of flat keywords for :func:`make_options`: a loop
+    setting's name goes to the settings, a method parameter's to the params;
+    ``<method>_<name>`` always means the method's parameter (needed where a
+    name is both, e.g. ``rhf_iterations`` or ``var_seed``, like the CLI's
+    ``--rhf-iterations``).  JobError names anything else."""
+    try:
+        mod = methods.get(method)
+    except ValueError as exc:
+        raise JobError(str(exc)) from None
+    known = {f.name for f in option_fields("cli")}
+    own = {f.name for f in fields(mod.Params)}
+    settings, params = {}, {}
+    for name, value in keywords.items():
+        if name.startswith(method + "_") and name[len(method) + 1:] in own:
+            params[name[len(method) + 1:]] = value
+        elif name in known:
+            settings[name] = value
+        elif name in own:
+            params[name] = value
+        else:
+            _check_param_names(method, mod.Params, {name: value})
+    return settings, params
+
+
+def _typed(field, value, owner: str):
+    """``value`` as the type of ``field``'s default, the type its CLI flag
+    parses to (an API caller's ``spp=16`` becomes 16.0, as ``--spp 16``), so
+    both paths build equal Options; JobError for a value of another kind."""
+    default = field.default
+    choices = field.metadata.get("choices")
+    if choices and value not in choices:
+        raise JobError(f"{owner} {field.name}={value!r}: choose one of {', '.join(map(str, choices))}")
+    if value is None or default is None or isinstance(default, str) and isinstance(value, str):
+        return value
+    if isinstance(default, bool):
+        if isinstance(value, (bool, np.bool_)):
+            return bool(value)
+    elif isinstance(default, int):
+        if isinstance(value, (int, np.integer)) and not isinstance(value, bool):
+            return int(value)
+        if isinstance(value, (float, np.floating)) and float(value).is_integer():
+            return int(value)
+    elif isinstance(default, float):
+        if isinstance(value, (int, float, np.integer, np.floating)) and not isinstance(value, bool):
+            return float(value)
+    else:
+        return value
+    raise JobError(f"{owner} {field.name}={value!r}: expected {type(default).__name__}")
+
+
+def _check_param_names(method: str, params_cls, params: dict) -> None:
+    own = [f.name for f in fields(params_cls)]
+    for name in params:
+        if name not in own:
+            have = ", ".join(own) if own else "none"
+            raise JobError(f"unknown parameter {name!r} for method {method} (its parameters: {have}; "
+                           f"loop settings: {', '.join(f.name for f in option_fields('cli'))})")
+
+
+# ================================================================= scenes
+def open_blend(path: str) -> None:
+    """Open ``path`` in this process (``wm.open_mainfile``, no UI): it replaces
+    the open file in memory; nothing is saved.  JobError for a missing or
+    unreadable file."""
+    import bpy
+    if not os.path.isfile(path):
+        raise JobError(f"{path}: no such .blend file")
+    try:
+        bpy.ops.wm.open_mainfile(filepath=os.path.abspath(path), load_ui=False)
+    except RuntimeError as exc:
+        raise JobError(f"{path}: cannot open ({str(exc).strip().splitlines()[-1]})") from None
+
+
+def resolve_scene(scene_name: str | None = None, view_layer_name: str | None = None):
+    """(scene, view layer) by name, default the active ones; JobError naming
+    what exists when a name is not found."""
+    import bpy
+    scene = bpy.data.scenes.get(scene_name) if scene_name else bpy.context.scene
+    if scene is None:
+        raise JobError(f"no scene named {scene_name!r} (have {', '.join(s.name for s in bpy.data.scenes)})")
+    return scene, resolve_view_layer(scene, view_layer_name)
+
+
+def resolve_view_layer(scene, name: str | None = None):
+    """The view layer ``name`` of ``scene`` (default: the active one when the
+    scene is the active scene, else its first)."""
+    import bpy
+    if name:
+        vl = scene.view_layers.get(name)
+        if vl is None:
+            raise JobError(f"no view layer {name!r} in scene {scene.name!r} "
+                           f"(have {', '.join(v.name for v in scene.view_layers)})")
+        return vl
+    return bpy.context.view_layer if bpy.context.scene == scene else scene.view_layers[0]
+
+
+def check_resolution_percentage(value: int) -> int:
+    """The resolution percentage override, checked (Blender's range 1-10000)."""
+    if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or not 1 <= value <= 10000:
+        raise JobError(f"resolution percentage must be an integer between 1 and 10000, got {value!r}")
+    return int(value)
+
+
+# ================================================================= output
+@dataclass
+class Output:
+    """What a job produced, before anything is written.
+
+    passes : the EXR passes (:func:`core.storage.buffers_to_passes`; arrays or
+        ``(array, channel letters)``), full frame, exactly as written.
+    layer : the EXR's layer name (the view layer's).
+    attributes : string attributes of the EXR (``cycles_adaptive/...``).
+    summary : the run's summary, the CLI's JSON line (``out`` is None until
+        written).
+    """
+
+    passes: dict
+    layer: str
+    attributes: dict
+    summary: dict
+
+
+def write_output(output: Output, path: str) -> None:
+    """Write the multilayer EXR of ``output`` to ``path`` atomically
+    (:func:`core.io.write_layers`); the caller checked that it may."""
+    imageio.write_layers(path, output.passes, layer=output.layer, attributes=output.attributes)
+
+
+def _info_fields(summary: dict, info: dict, prefix: str = "") -> None:
+    for k, v in info.items():
+        if isinstance(v, (int, float, str, bool)):
+            summary[prefix + k] = v
+
+
 class RenderJob:
     """Adaptive render of one frame of a scene.
 
     ``steps()`` yields ``Progress``; when it ends (or after a cancel) call
-    ``finish(partial=...)``, which reconstructs, writes the outputs and returns
-    the summary dict (the CLI's JSON line).
+    ``finish(partial=...)``, which reconstructs, writes the outputs (when the
+    job has an ``out``) and returns the summary dict (the CLI's JSON line);
+    ``output(partial=...)`` gives the same result without writing anything.
     """
 
-    def __init__(self, scene, view_layer, options: Options, out: str, reference: str | None = None,
+    def __init__(self, scene, view_layer, options: Options, out: str | None, reference: str | None = None,
                  overwrite: bool = False, resume: bool = False, preview: bool = True,
                  keep_checkpoint: bool = False, method=None, prior=None, reconstructor=None):
-        """``method``: a :class:`core.method.Method` object (default: the
-        registered ``options.method``); ``prior``: the run's source of carried
-        samples (``core.pipeline.Prior``); ``reconstructor(run) -> MethodResult``
-        replaces the method's final reconstruction (LP's temporal extension)."""
+        """``out``: the output EXR, or None to write nothing (no checkpoint,
+        no outputs: the API); ``method``: a :class:`core.method.Method` object
+        (default: the registered ``options.method``); ``prior``: the run's
+        source of carried samples (``core.pipeline.Prior``);
+        ``reconstructor(run) -> MethodResult`` replaces the method's final
+        reconstruction (LP's temporal extension)."""
         from ..addon import executor as ex
-        from ..core import methods
         self.ex = ex
         ex.check_scene(scene, view_layer)
         self.scene, self.view_layer = scene, view_layer
         self.options = options
-        self.out = os.path.abspath(bpy_path(out))
-        self.ckpt = checkpoint_path(self.out)
+        self.out = os.path.abspath(bpy_path(out)) if out else None
+        self.ckpt = checkpoint_path(self.out) if self.out else None
         self.resume = resume
-        if resume and not os.path.isfile(self.ckpt):
+        if resume and not (self.ckpt and os.path.isfile(self.ckpt)):
             raise JobError(f"--resume: no checkpoint {self.ckpt}")
-        try:
-            imageio.check_writable(self.out, overwrite or resume)
-            if preview:
-                imageio.check_writable(preview_path(self.out), overwrite or resume)
-        except imageio.ImageFileError as exc:
-            raise JobError(str(exc)) from None
-        self.preview = preview
+        self.preview = preview and self.out is not None
+        if self.out:
+            try:
+                imageio.check_writable(self.out, overwrite or resume)
+                if self.preview:
+                    imageio.check_writable(preview_path(self.out), overwrite or resume)
+            except imageio.ImageFileError as exc:
+                raise JobError(str(exc)) from None
         self.keep_checkpoint = keep_checkpoint
         self.reference_path = reference
         self.run: AdaptiveRun | None = None
@@ -104,9 +278,10 @@ class RenderJob:
         self.prior = prior
         self.reconstructor = reconstructor
         self.camera = None         # camera matrices of the rendered frame
-        self.result = None         # the final MethodResult, once finish() ran
+        self.result = None         # the final MethodResult, once output() ran
         self.t0 = time.perf_counter()
         self.summary: dict | None = None
+        self._output: Output | None = None
 
     def steps(self):
         self.executor = self.ex.CyclesExecutor(self.scene, self.view_layer,
@@ -124,8 +299,12 @@ class RenderJob:
                     raise JobError(str(exc)) from None
             yield from self.run.steps()
 
-    def finish(self, partial: bool = False) -> dict:
-        """Reconstruct from what was rendered and write the outputs."""
+    def output(self, partial: bool = False) -> Output:
+        """Reconstruct from what was rendered: the passes, attributes and
+        summary, nothing written.  Computed once (a reconstruction may carry
+        state, e.g. LP's temporal one); later calls return the same Output."""
+        if self._output is not None:
+            return self._output
         run = self.run
         if run is None or run.buffers is None:
             raise JobError("nothing was rendered")
@@ -133,7 +312,6 @@ class RenderJob:
         self.result = result
         image = np.where(np.isfinite(result.image), result.image, 0.0)
         error = np.where(np.isfinite(result.error), result.error, 0.0)
-        t_write = time.perf_counter()
         passes = buffers_to_passes(run.buffers, image, error)
         passes["NextIndex"] = run.next_index.astype(np.float64)
         ex = self.executor
@@ -147,13 +325,6 @@ class RenderJob:
                  "cycles_adaptive/options": json.dumps(_jsonable(vars(self.options))),
                  "cycles_adaptive/blender": bpy.app.version_string,
                  "cycles_adaptive/partial": str(bool(partial)).lower()}
-        imageio.write_layers(self.out, passes, layer=self.view_layer.name, attributes=attrs)
-        if self.preview:
-            self.ex.write_preview(self.scene, passes["Combined"] if not isinstance(passes["Combined"], tuple)
-                                  else passes["Combined"][0], preview_path(self.out))
-        run.timing.overhead += time.perf_counter() - t_write
-        if not partial and not self.keep_checkpoint and os.path.exists(self.ckpt):
-            os.unlink(self.ckpt)
         h, w = run.height, run.width
         summary = {
             "method": self.options.method,
@@ -178,16 +349,72 @@ class RenderJob:
             "reprojected_fraction": float((run.reused > 0).mean()),
             "blender": bpy.app.version_string,
         }
-        for k, v in result.info.items():
-            if isinstance(v, (int, float, str, bool)):
-                summary[k] = v
-        for k, v in run.prior_info.items():
-            if isinstance(v, (int, float, str, bool)):
-                summary[f"reproject_{k}"] = v
+        _info_fields(summary, result.info)
+        _info_fields(summary, run.prior_info, "reproject_")
         if self.reference is not None:
             summary.update(metrics.summary(image, error, self.reference))
+        self._output = Output(passes, self.view_layer.name, attrs, summary)
         self.summary = summary
-        return summary
+        return self._output
+
+    def finish(self, partial: bool = False) -> dict:
+        """Reconstruct from what was rendered and, when the job has an
+        ``out``, write the EXR, the PNG preview and drop the checkpoint."""
+        out = self.output(partial)
+        if self.out is None:
+            return out.summary
+        run = self.run
+        t_write = time.perf_counter()
+        write_output(out, self.out)
+        if self.preview:
+            combined = out.passes["Combined"]
+            self.ex.write_preview(self.scene, combined[0] if isinstance(combined, tuple) else combined,
+                                  preview_path(self.out))
+        run.timing.overhead += time.perf_counter() - t_write
+        if not partial and not self.keep_checkpoint and os.path.exists(self.ckpt):
+            os.unlink(self.ckpt)
+        out.summary["total_seconds"] = time.perf_counter() - self.t0
+        return out.summary
+
+
+# ================================================================ denoise
+def denoise_output(path: str, method: str, params: dict | None = None, guard_z: float | None = None,
+                   reference: str | None = None) -> Output:
+    """Re-run ``method`` on the passes stored in ``path`` (an output EXR of a
+    render, or a Blender multilayer render with Combined and Denoising
+    passes), through the consistency guard (``guard_z``, default the loop's):
+    the output of ``denoise``, nothing written.  JobError for a method whose
+    passes the file lacks; ImageFileError / StorageError for a bad file."""
+    t0 = time.perf_counter()
+    passes, meta = imageio.read_layers(path)
+    buf = buffers_from_passes(passes, path)
+    mod = methods.get(method)
+    missing = [f for f in mod.PASSES if f not in buf.features]
+    if missing:
+        raise JobError(f"{path}: method {method} needs the {missing[0]} pass, "
+                       f"which the file lacks (have {', '.join(sorted(buf.features)) or 'none'})")
+    ref = load_reference(reference, buf.shape)
+    _check_param_names(method, mod.Params, params or {})
+    try:
+        params_obj = params_from_dict(mod.Params, params)
+    except (ValueError, TypeError) as exc:
+        raise JobError(str(exc)) from None
+    t1 = time.perf_counter()
+    guard_z = Options().guard_z if guard_z is None else guard_z
+    result = consistency_guard(mod.reconstruct(buf, params_obj), buf, guard_z)
+    t_rec = time.perf_counter() - t1
+    image = np.where(np.isfinite(result.image), result.image, 0.0)
+    error = np.where(np.isfinite(result.error), result.error, 0.0)
+    out_passes = buffers_to_passes(buf, image, error)
+    h, w = buf.shape
+    summary = {"method": method, "width": w, "height": h,
+               "spp_mean": float(buf.n.mean()), "render_seconds": 0.0,
+               "reconstruct_seconds": t_rec, "total_seconds": time.perf_counter() - t0,
+               "regions": 0, "peak_rss_mb": peak_rss_mb(), "out": None}
+    _info_fields(summary, result.info)
+    if ref is not None:
+        summary.update(metrics.summary(image, error, ref))
+    return Output(out_passes, meta.get("layer") or "ViewLayer", {"cycles_adaptive/method": method}, summary)
 
 
 def bpy_path(path: str) -> str:
