@@ -66,30 +66,12 @@ def _as_error():
         raise
 
 
-@contextlib.contextmanager
 def _quiet():
     """Blender's and Cycles' log lines ("Read blend", "Fra: ... Sample 3/4")
-    kept off file descriptor 1 while a file opens and a render runs, also
-    under pytest's capture, where ``sys.stdout`` has no descriptor and the
-    executor's own silencing cannot reach it; ``CYCLES_ADAPTIVE_VERBOSE=1``
-    keeps them."""
-    if os.environ.get("CYCLES_ADAPTIVE_VERBOSE"):
-        yield
-        return
-    try:
-        sys.stdout.flush()
-        saved = os.dup(1)
-    except (AttributeError, OSError, ValueError):
-        yield
-        return
-    devnull = os.open(os.devnull, os.O_WRONLY)
-    try:
-        os.dup2(devnull, 1)
-        yield
-    finally:
-        os.dup2(saved, 1)
-        os.close(saved)
-        os.close(devnull)
+    kept off stdout while a file opens and a render runs, also under pytest's
+    capture (``addon.executor.quiet_stdout``)."""
+    from .addon.executor import quiet_stdout
+    return quiet_stdout()
 
 
 # ================================================================= result

@@ -45,7 +45,9 @@ PASS_SOURCES = {
 def quiet_stdout():
     """Silence Cycles' per-render log lines ("Fra: ... Sample 3/4", "Saved:")
     on the process's stdout while it renders; our progress lines stay readable.
-    Set CYCLES_ADAPTIVE_VERBOSE=1 to keep them."""
+    Set CYCLES_ADAPTIVE_VERBOSE=1 to keep them.  Where ``sys.stdout`` has no
+    descriptor (pytest's capture, an embedding host) descriptor 1 is silenced,
+    which is where Blender writes."""
     if os.environ.get("CYCLES_ADAPTIVE_VERBOSE"):
         yield
         return
@@ -53,9 +55,12 @@ def quiet_stdout():
         sys.stdout.flush()
         fd = sys.stdout.fileno()
     except (AttributeError, OSError, ValueError):
+        fd = 1
+    try:
+        saved = os.dup(fd)
+    except OSError:
         yield
         return
-    saved = os.dup(fd)
     devnull = os.open(os.devnull, os.O_WRONLY)
     try:
         os.dup2(devnull, fd)

@@ -89,7 +89,12 @@ import argparse  # noqa: E402
 cli = importlib.import_module(f"{pkg}.operators.cli")
 parser = cli.build_parser(blender_command=True)
 commands = sorted(next(a for a in parser._actions if isinstance(a, argparse._SubParsersAction)).choices)
+# the Python API as a studio's test imports it from the installed extension
+api = importlib.import_module(f"{pkg}.api")
+api_result = api.render(scene, method="uniform", spp=2)
+api_ok = api.compare(api_result, api_result.save(out.replace(".exr", "_api.exr"))).passed
 print("RESULT " + json.dumps({
+    "api": bool(api_ok),
     "version": list(bpy.app.version[:2]), "install": sorted(install),
     "enabled": pkg in bpy.context.preferences.addons,
     "hidden_before": hidden_before, "wheel_site": WHEEL_SITE,

@@ -122,6 +122,7 @@ def test_installs_with_only_the_bundled_openimageio_enables_and_renders(zips, tm
     assert res["oiio_file"].startswith(res["wheel_site"] + os.sep), res
     assert res["install"] == ["FINISHED"] and res["enabled"], res
     assert res["op"] == ["FINISHED"], res
+    assert res["api"], res
     assert res["exists"] and res["png"], res
     assert res["exr_shape"] == [16, 24, 4] and res["exr_finite"], res
     assert {"Combined", "Noisy", "Variance", "Samples", "Error"} <= set(res["exr_passes"]), res

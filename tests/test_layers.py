@@ -49,7 +49,7 @@ def test_the_addon_registers_without_posix_only_modules():
     """Windows has no ``resource``, ``fcntl``, ``termios`` or ``pwd``: with them
     blocked, every shipped module imports and the add-on registers."""
     shipped = ["core." + m for m in _modules("core")] + ["addon." + m for m in _modules("addon")] + \
-        ["operators." + m for m in _modules("operators")]
+        ["operators." + m for m in _modules("operators")] + ["api"]
     code = BLOCK.format(blocked={"resource", "fcntl", "termios", "pwd", "grp"}) + (
         "sys.path.insert(0, 'tests')\nfrom launch import load_package\npkg = load_package()\n"
         "import importlib\n"
