@@ -24,5 +24,5 @@ def load_package(name: str = "cycles_adaptive"):
 if __name__ == "__main__":
     load_package()
     from cycles_adaptive.bench import COMMANDS
-    from cycles_adaptive.operators import cli
-    sys.exit(cli.main(sys.argv[1:], extra_commands=COMMANDS))
+    from cycles_adaptive.operators import cli, farm, farm_job
+    sys.exit(cli.main(sys.argv[1:], extra_commands=tuple(COMMANDS) + (farm_job, farm.WORKER)))

@@ -20,21 +20,24 @@ for a in "$@"; do
   esac
 done
 
-make_venv() {  # make_venv DIR REQUIREMENTS
-  local dir="$1" req="$2" stamp="$1/.requirements.sha" want
-  want="$(sha256sum "$req" | cut -d' ' -f1)"
+make_venv() {  # make_venv DIR REQUIREMENTS...
+  local dir="$1" stamp="$1/.requirements.sha" want req args=()
+  shift
+  want="$(cat "$@" | sha256sum | cut -d' ' -f1)"
+  for req in "$@"; do args+=(-r "$req"); done
   if [ ! -x "$dir/bin/python" ] || [ "$(cat "$stamp" 2>/dev/null)" != "$want" ]; then
-    echo "[setup] creating $dir from $req (bpy is large: a few minutes)"
+    echo "[setup] creating $dir from $* (bpy is large: a few minutes)"
     rm -rf "$dir"
     "$PYTHON" -m venv "$dir"
     "$dir/bin/python" -m pip install -q --upgrade pip
-    "$dir/bin/python" -m pip install -q -r "$req"
+    "$dir/bin/python" -m pip install -q "${args[@]}"
     echo "$want" > "$stamp"
   fi
   "$dir/bin/python" -c "import bpy, numpy, OpenImageIO; print('[setup] $dir: bpy', bpy.app.version_string, '| numpy', numpy.__version__, '| OpenImageIO', OpenImageIO.VERSION_STRING)"
 }
 
-make_venv .venv requirements.txt
+# the main environment also carries the farm stack (Dask, OpenJD, Node for the Flamenco test)
+make_venv .venv requirements.txt requirements-farm.txt
 if [ "$versions" = 1 ]; then
   make_venv .venv-4.2 requirements-4.2.txt
   make_venv .venv-5.0 requirements-5.0.txt

@@ -110,6 +110,8 @@ def build_parser(blender_command: bool = False, extra_commands=()) -> argparse.A
     r.add_argument("--no-preview", action="store_true", help="do not write the PNG preview")
     r.add_argument("--json", action="store_true", help="print one JSON object as the last line")
     r.add_argument("--quiet", action="store_true", help="no progress lines")
+    from . import farm
+    farm.add_render_arguments(r)
     add_dataclass_flags(r.add_argument_group("loop settings"), option_fields("cli"))
     add_method_params(r, list(methods.METHODS) + list(methods.STAGES))
 
@@ -150,6 +152,10 @@ def main(argv=None, blender_command: bool = False, extra_commands=()) -> int:
         if _is_user_error(exc):
             print(f"error: {exc}", file=sys.stderr)
             return EXIT_INPUT
+        from .farm import FarmError
+        if isinstance(exc, FarmError):
+            print(f"error: {exc}", file=sys.stderr)
+            return EXIT_FAIL
         raise
     return EXIT_FAIL
 
@@ -178,11 +184,27 @@ def cmd_render(args, blender_command=False) -> int:
         scene.render.resolution_percentage = check_resolution_percentage(args.resolution_percentage)
     frame = scene.frame_current if args.frame is None else args.frame
     opts = options_from_args(args, args.method, frame)
-    if args.frames:
-        return _render_frames(args, scene, vl, opts)
+    from . import farm
+    if args.skip_existing and not args.frames:
+        raise UserError("--skip-existing needs --frames")
+    with farm.open_farm(args, log=_log(args)) as cluster:
+        if args.frames:
+            return _render_frames(args, scene, vl, opts, cluster)
+        return _render_frame(args, scene, vl, opts, cluster)
+
+
+def _log(args):
+    return (lambda *a: None) if args.quiet else (lambda msg: print(f"[cycles-adaptive] {msg}", flush=True))
+
+
+def _render_frame(args, scene, vl, opts, cluster) -> int:
+    import bpy
+    from . import farm
+    from .job import RenderJob
     out = args.out or default_out(bpy.data.filepath or "untitled.blend", args.method)
     job = RenderJob(scene, vl, opts, out, reference=args.reference, overwrite=args.overwrite,
-                    resume=args.resume, preview=not args.no_preview)
+                    resume=args.resume, preview=not args.no_preview,
+                    executor_factory=farm.executor_for(cluster, out))
     interrupted = False
     last = 0.0
     try:
@@ -200,16 +222,24 @@ def cmd_render(args, blender_command=False) -> int:
     return EXIT_INTERRUPT if interrupted else EXIT_OK
 
 
-def _render_frames(args, scene, vl, opts) -> int:
-    from .job import FramesJob, parse_frames
+def _render_frames(args, scene, vl, opts, cluster=None) -> int:
+    from . import farm, farm_job
+    from .job import FramesJob, frame_path, parse_frames
     if args.frame is not None:
         raise UserError("give --frame or --frames, not both")
     frames = parse_frames(args.frames, scene)
-    out = args.out or default_out(bpy_filepath(), args.method, "_####")
-    job = FramesJob(scene, vl, opts, out, frames, reference_pattern=args.reference, temporal=args.temporal,
-                    reproject_params=method_params(args, "reproject"),
-                    temporal_params=method_params(args, "temporal"),
-                    overwrite=args.overwrite, resume=args.resume, preview=not args.no_preview)
+    out = os.path.abspath(args.out or default_out(bpy_filepath(), args.method, "_####"))
+    common = dict(reference_pattern=args.reference, temporal=args.temporal,
+                  reproject_params=method_params(args, "reproject"),
+                  temporal_params=method_params(args, "temporal"), preview=not args.no_preview)
+    flags = dict(skip_existing=args.skip_existing, resume=args.resume, overwrite=args.overwrite)
+    if cluster is not None:
+        job = farm.FarmFramesJob(cluster, scene, vl, opts, out, frames, **common, **flags)
+    else:
+        def make(fr, resume):
+            return FramesJob(scene, vl, opts, out, fr, overwrite=args.overwrite, resume=resume, **common)
+        job = farm_job.FrameRangeJob(make, frames, lambda f: frame_path(out, f), args.temporal,
+                                     method=opts.method, **flags)
     interrupted = False
     try:
         for step in job.steps():
@@ -219,10 +249,10 @@ def _render_frames(args, scene, vl, opts) -> int:
                 print(f"[cycles-adaptive] {100 * step.fraction:5.1f}% {step.message}", flush=True)
     except KeyboardInterrupt:
         interrupted = True
-        if job.job is not None and job.job.run is not None and job.job.run.buffers is not None:
-            _report(job.job.finish(partial=True), args.json)
-    _report(job.summary(), args.json)
-    return EXIT_INTERRUPT if interrupted else EXIT_OK
+    summary = job.finish(partial=interrupted)
+    print(f"[cycles-adaptive] {summary['exit_summary']}", flush=True)
+    _report(summary, args.json)
+    return EXIT_INTERRUPT if interrupted else summary["exit_code"]
 
 
 def bpy_filepath() -> str:

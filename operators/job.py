@@ -245,7 +245,8 @@ class RenderJob:
 
     def __init__(self, scene, view_layer, options: Options, out: str | None, reference: str | None = None,
                  overwrite: bool = False, resume: bool = False, preview: bool = True,
-                 keep_checkpoint: bool = False, method=None, prior=None, reconstructor=None):
+                 keep_checkpoint: bool = False, method=None, prior=None, reconstructor=None,
+                 executor_factory=None):
         """``out``: the output EXR, or None to write nothing (no checkpoint,
         no outputs: the API); ``method``: a :class:`core.method.Method` object
         (default: the registered ``options.method``); ``prior``: the run's
@@ -277,6 +278,7 @@ class RenderJob:
         self.method = methods.get(options.method) if method is None else method
         self.prior = prior
         self.reconstructor = reconstructor
+        self.executor_factory = executor_factory or ex.CyclesExecutor
         self.camera = None         # camera matrices of the rendered frame
         self.result = None         # the final MethodResult, once output() ran
         self.t0 = time.perf_counter()
@@ -284,9 +286,9 @@ class RenderJob:
         self._output: Output | None = None
 
     def steps(self):
-        self.executor = self.ex.CyclesExecutor(self.scene, self.view_layer,
-                                               tuple(self.method.PASSES) + tuple(self.options.features),
-                                               seed=self.options.seed)
+        self.executor = self.executor_factory(self.scene, self.view_layer,
+                                              tuple(self.method.PASSES) + tuple(self.options.features),
+                                              seed=self.options.seed)
         self.reference = load_reference(self.reference_path, self.executor.size)
         with self.executor:
             self.camera = self.executor.camera_info(self.options.frame)
