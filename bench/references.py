@@ -21,7 +21,6 @@ developer tools (``tools/``) share.
 """
 from __future__ import annotations
 
-import hashlib
 import json
 import os
 import time
@@ -93,12 +92,6 @@ def scene_label(path: str) -> str:
     return os.path.splitext(os.path.basename(path))[0]
 
 
-def file_sha256(path: str) -> str:
-    h = hashlib.sha256()
-    with open(path, "rb") as f:
-        for chunk in iter(lambda: f.read(1 << 20), b""):
-            h.update(chunk)
-    return h.hexdigest()
 
 
 def open_scene(path: str, force: bool = False) -> None:
@@ -140,7 +133,7 @@ def sidecar_path(exr: str) -> str:
 def wanted_record(scene: str, frame: int, resolution_percentage: int, spp: int, seed: int) -> dict:
     """The sidecar fields a cached reference must match (``MATCH_KEYS``)."""
     import bpy
-    return {"version": SIDECAR_VERSION, "scene": scene_label(scene), "blend_sha256": file_sha256(scene),
+    return {"version": SIDECAR_VERSION, "scene": scene_label(scene), "blend_sha256": imageio.file_sha256(scene),
             "frame": int(frame), "resolution_percentage": int(resolution_percentage),
             "spp": int(spp), "seed": int(seed), "blender": bpy.app.version_string}
 

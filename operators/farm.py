@@ -32,7 +32,6 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
-import hashlib
 import ipaddress
 import json
 import os
@@ -46,6 +45,7 @@ from urllib.parse import urlsplit
 
 import numpy as np
 
+from ..core.io import file_sha256
 from . import farm_job
 
 LOOPBACK = "127.0.0.1"
@@ -604,13 +604,7 @@ def _one_line(exc) -> str:
     return f"{type(exc).__name__}: {text[-1] if text else ''}".rstrip(": ")
 
 
-def file_digest(path: str) -> str:
-    """SHA-256 of a file's bytes (hex)."""
-    h = hashlib.sha256()
-    with open(path, "rb") as f:
-        for block in iter(lambda: f.read(1 << 20), b""):
-            h.update(block)
-    return h.hexdigest()
+file_digest = file_sha256  # the content hash every worker checks the .blend against
 
 
 # ------------------------------------------------------------ worker side
