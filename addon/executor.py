@@ -265,17 +265,7 @@ class CyclesExecutor:
                 g.set(vl, attr, True)
 
     def _protect_render_result(self):
-        """Render into a slot of our own so the user's last render survives;
-        the active slot is restored on exit."""
-        rr = bpy.data.images.get("Render Result")
-        slots = getattr(rr, "render_slots", None) if rr is not None else None
-        if not slots:
-            return
-        idx = next((i for i, sl in enumerate(slots) if sl.name == "Cycles Adaptive"), None)
-        if idx is None:
-            slots.new(name="Cycles Adaptive")
-            idx = len(slots) - 1
-        self.guard.set(slots, "active_index", idx)
+        protect_render_result(self.guard)
 
     # ----------------------------------------------------------------- render
     def render(self, task):
@@ -337,6 +327,20 @@ class CyclesExecutor:
     def write_preview(self, rgba: np.ndarray, path: str) -> None:
         """PNG in the scene's view transform (Blender applies it on save)."""
         write_preview(self.scene, rgba, path)
+
+
+def protect_render_result(guard: SettingsGuard) -> None:
+    """Render into a Render Result slot of our own ("Cycles Adaptive") so the
+    user's last render survives; ``guard`` restores the active slot."""
+    rr = bpy.data.images.get("Render Result")
+    slots = getattr(rr, "render_slots", None) if rr is not None else None
+    if not slots:
+        return
+    idx = next((i for i, sl in enumerate(slots) if sl.name == "Cycles Adaptive"), None)
+    if idx is None:
+        slots.new(name="Cycles Adaptive")
+        idx = len(slots) - 1
+    guard.set(slots, "active_index", idx)
 
 
 def write_preview(scene, rgba: np.ndarray, path: str) -> None:

@@ -24,6 +24,14 @@ With one group (k = 1) no variance estimate exists: ``sample_variance`` returns
 The same statistics are kept for every feature pass (albedo, normal, depth,
 position ...), because the reconstruction methods need the variance of features
 too (RHF Eq. 5, LP's feature prefilter).
+
+Two disjoint halves (:class:`Half`): each merged group also goes, whole, to
+one of two halves of the pixel's samples, the one with fewer samples so far
+(ties: half A), decided before the group's samples are seen.  Only half A is
+stored (count and means); half B is the rest, ``mean_B = (n mean - n_A
+mean_A) / (n - n_A)``.  Dual-buffer estimates (``core/oidn.py``: denoise each
+half, compare) need the halves to be independent, which whole groups are.
+The statistics above do not depend on the halves.
 """
 from __future__ import annotations
 
@@ -68,6 +76,23 @@ class Stat:
 
 
 @dataclass
+class Half:
+    """Half A of each pixel's sample groups (see the module notes).
+
+    n : (H, W) float64 samples in half A
+    color : (H, W, 3) float64 mean of half A's samples (0 where n = 0)
+    features : dict name -> (H, W, C) float64 half-A means of the feature passes
+    """
+
+    n: np.ndarray
+    color: np.ndarray
+    features: dict = field(default_factory=dict)
+
+    def copy(self) -> "Half":
+        return Half(self.n.copy(), self.color.copy(), {k: v.copy() for k, v in self.features.items()})
+
+
+@dataclass
 class Buffers:
     """Accumulated samples of one frame.
 
@@ -81,12 +106,16 @@ class Buffers:
         Combined pass, RGB.
     features : dict[str, Stat]
         Feature passes by name (see ``FEATURE_CHANNELS``).
+    half : Half or None
+        Half A of the disjoint halves (module notes); None when unknown (e.g.
+        buffers read from a file), and then :meth:`halves` returns None.
     """
 
     n: np.ndarray
     k: np.ndarray
     color: Stat
     features: dict = field(default_factory=dict)
+    half: Half | None = None
 
     # ------------------------------------------------------------------ shape
     @property
@@ -104,13 +133,17 @@ class Buffers:
     # ------------------------------------------------------------ construction
     @classmethod
     def empty(cls, height: int, width: int, feature_names=()) -> "Buffers":
-        """Buffers with no samples (n = 0, k = 0) for the given passes."""
+        """Buffers with no samples (n = 0, k = 0) for the given passes, with
+        empty halves."""
         z = lambda c: Stat(np.zeros((height, width, c)), np.zeros((height, width, c)))
+        chans = {f: FEATURE_CHANNELS.get(f, 3) for f in feature_names}
         return cls(
             n=np.zeros((height, width)),
             k=np.zeros((height, width)),
             color=z(3),
-            features={f: z(FEATURE_CHANNELS.get(f, 3)) for f in feature_names},
+            features={f: z(c) for f, c in chans.items()},
+            half=Half(np.zeros((height, width)), np.zeros((height, width, 3)),
+                      {f: np.zeros((height, width, c)) for f, c in chans.items()}),
         )
 
     @classmethod
@@ -133,7 +166,8 @@ class Buffers:
 
     def copy(self) -> "Buffers":
         return Buffers(self.n.copy(), self.k.copy(), self.color.copy(),
-                       {k: v.copy() for k, v in self.features.items()})
+                       {k: v.copy() for k, v in self.features.items()},
+                       None if self.half is None else self.half.copy())
 
     # ----------------------------------------------------------------- merging
     def merge_group(self, color, count, features=None, region=None) -> None:
@@ -150,6 +184,7 @@ class Buffers:
         n_a = self.n[sl]
         n = n_a + cnt
         has = cnt > 0
+        self._half_add(sl, cnt, np.asarray(color, np.float64), features)
         safe_n = np.where(n > 0, n, 1.0)
         wb = np.where(has, cnt / safe_n, 0.0)[..., None]
         cross = np.where(has, n_a * cnt / safe_n, 0.0)[..., None]
@@ -169,6 +204,7 @@ class Buffers:
         add: k = k_a + k_b.
         """
         sl = _region_slice(region, self.shape)
+        self._half_merge(sl, other)
         n_a, n_b = self.n[sl], other.n
         n = n_a + n_b
         safe_n = np.where(n > 0, n, 1.0)
@@ -180,6 +216,75 @@ class Buffers:
             _chan_update(stat, sl, o.mean, wb, cross, o.m2)
         self.n[sl] = n
         self.k[sl] = self.k[sl] + other.k
+
+    # ------------------------------------------------------------------ halves
+    def _half_add(self, sl, cnt, color, features, to_a=None) -> None:
+        """Add a group (means ``color`` / ``features``, ``cnt`` samples) to
+        half A where A has no more samples than B (or where ``to_a``), before
+        ``self.n`` is updated."""
+        h = self.half
+        if h is None:
+            return
+        if to_a is None:
+            to_a = 2.0 * h.n[sl] <= self.n[sl]
+        add = np.where(to_a & (cnt > 0), cnt, 0.0)
+        n_new = h.n[sl] + add
+        w = np.where(add > 0, add / np.where(n_new > 0, n_new, 1.0), 0.0)[..., None]
+        with np.errstate(invalid="ignore", over="ignore"):
+            h.color[sl] = h.color[sl] + (color - h.color[sl]) * w
+            for name, arr in h.features.items():
+                f = features.get(name) if features else None
+                if f is None:
+                    continue
+                f = np.asarray(f, np.float64).reshape(arr[sl].shape)
+                arr[sl] = arr[sl] + (f - arr[sl]) * w
+        h.n[sl] = n_new
+
+    def _half_merge(self, sl, other: "Buffers") -> None:
+        """Halves of ``self`` after merging ``other``: other's larger half goes
+        to our smaller one where both are split; where ``other`` has no halves,
+        it counts as one group (:meth:`_half_add`)."""
+        if self.half is None:
+            return
+        oh = other.halves()
+        if oh is None:
+            feats = {k: v.mean for k, v in other.features.items()}
+            self._half_add(sl, other.n, other.color.mean, feats)
+            return
+        (na, ca, fa), (nb, cb, fb) = oh
+        a_small = 2.0 * self.half.n[sl] <= self.n[sl]
+        big_is_a = na >= nb
+        first = a_small == big_is_a  # where other's A goes to our A
+        pick = lambda x, y, m: np.where(m[..., None] if x.ndim == 3 else m, x, y)
+        n_to_a = pick(na, nb, first)
+        c_to_a = pick(ca, cb, first)
+        f_to_a = {k: pick(fa[k], fb[k], first) for k in fa if k in fb}
+        self._half_add(sl, n_to_a, c_to_a, f_to_a, to_a=np.ones(n_to_a.shape, bool))
+
+    def halves(self):
+        """``((n_A, color_A, features_A), (n_B, color_B, features_B))`` of the
+        disjoint halves, or None when they are unknown or inconsistent with
+        the buffers (``n_A`` outside ``[0, n]``, shapes that differ).  Half B's
+        means are ``(n mean - n_A mean_A) / n_B`` (0 where ``n_B = 0``)."""
+        h = self.half
+        if h is None or h.n.shape != self.n.shape or h.color.shape != self.color.mean.shape:
+            return None
+        if not np.all((h.n >= 0) & (h.n <= self.n)):
+            return None
+        nb = self.n - h.n
+        safe = np.where(nb > 0, nb, 1.0)[..., None]
+        rest = lambda whole, a: np.where(nb[..., None] > 0, (self.n[..., None] * whole
+                                                             - h.n[..., None] * a) / safe, 0.0)
+        with np.errstate(invalid="ignore", over="ignore"):
+            cb = rest(self.color.mean, h.color)
+            fa, fb = {}, {}
+            for name, arr in h.features.items():
+                st = self.features.get(name)
+                if st is None or st.mean.shape != arr.shape:
+                    continue
+                fa[name] = arr
+                fb[name] = rest(st.mean, arr)
+        return (h.n, h.color, fa), (nb, cb, fb)
 
     # -------------------------------------------------------------- statistics
     @property

@@ -19,13 +19,14 @@ METHODS = {
     "awr": "awr",
     "lp": "lp",
     "rhf": "rhf",
+    "oidn": "oidn",
 }
 
 #: parameter groups that are not methods (frame ranges): name -> core module
 STAGES = {"reproject": "reproject", "temporal": "temporal"}
 
 #: methods that reconstruct (usable by ``denoise``)
-DENOISERS = ("awr", "lp", "rhf")
+DENOISERS = ("awr", "lp", "rhf", "oidn")
 
 
 def get(name: str) -> Method:
@@ -38,6 +39,15 @@ def get(name: str) -> Method:
     if missing:
         raise TypeError(f"method module {mod.__name__} does not declare {', '.join(missing)}")
     return mod
+
+
+def method_for(name: str, params: dict | None = None) -> Method:
+    """The Method to run for ``name`` with ``params``: the registered module,
+    or the variant its ``method_for(params)`` picks where a parameter selects
+    one (oidn: adaptive sampling or uniform sampling + OIDN)."""
+    mod = get(name)
+    pick = getattr(mod, "method_for", None)  # optional module member, see the docstring
+    return mod if pick is None else pick(params or {})
 
 
 def param_fields(name: str):

@@ -165,7 +165,7 @@ class AdaptiveRun:
         give the samples carried from earlier frames (:class:`Prior`)."""
         self.executor = executor
         self.options = options
-        self.method = methods.get(options.method) if method is None else method
+        self.method = methods.method_for(options.method, options.params) if method is None else method
         self.params = params_from_dict(self.method.Params, options.params)
         h, w = executor.size
         self.height, self.width = int(h), int(w)

@@ -275,7 +275,7 @@ class RenderJob:
         self.reference_path = reference
         self.run: AdaptiveRun | None = None
         self.executor = None
-        self.method = methods.get(options.method) if method is None else method
+        self.method = methods.method_for(options.method, options.params) if method is None else method
         self.prior = prior
         self.reconstructor = reconstructor
         self.executor_factory = executor_factory or ex.CyclesExecutor

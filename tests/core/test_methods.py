@@ -37,4 +37,4 @@ def test_denoise_has_one_signature_and_matches_reconstruct(name):
 
 def test_unknown_method_names_the_choices():
     with pytest.raises(ValueError, match="choose one of uniform"):
-        methods.get("oidn")
+        methods.get("no-such-method")
