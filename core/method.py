@@ -233,6 +233,41 @@ def _t_table(z: float, max_dof: int = 256) -> np.ndarray:
     return out
 
 
+def _med3(a, b, c):
+    """Median of three arrays, elementwise, by min/max (exact, ties included)."""
+    return np.maximum(np.minimum(a, b), np.minimum(np.maximum(a, b), c))
+
+
+def median3x3(x: np.ndarray, rows: int = 64) -> np.ndarray:
+    """3x3 median of each channel of ``x`` (H, W, C), edges replicated.
+
+    The same values as ``np.median`` over the 9 shifted planes of the
+    edge-padded image: each column of three is sorted (min, mid, max), and
+    the median of the 3x3 window is the median of (the largest of the three
+    minima, the median of the three mids, the smallest of the three maxima)
+    (Paeth, "Median finding on a 3x3 grid", Graphics Gems, 1990).  Only
+    min/max, so the value is exact, ties included, and a NaN anywhere in the
+    window gives NaN, as ``np.median`` does.  Row blocks of ``rows`` keep
+    the planes in cache.
+    """
+    x = np.asarray(x)
+    h, w = x.shape[:2]
+    pad = np.pad(x, ((1, 1), (1, 1)) + ((0, 0),) * (x.ndim - 2), mode="edge")
+    out = np.empty_like(x)
+    for y0 in range(0, h, rows):
+        y1 = min(h, y0 + rows)
+        a, b, c = pad[y0:y1], pad[y0 + 1:y1 + 1], pad[y0 + 2:y1 + 2]
+        lo, hi = np.minimum(a, b), np.maximum(a, b)
+        mid = np.minimum(hi, c)
+        hi = np.maximum(hi, c)
+        lo, mid = np.minimum(lo, mid), np.maximum(lo, mid)
+        lo = np.maximum(np.maximum(lo[:, :w], lo[:, 1:w + 1]), lo[:, 2:])
+        hi = np.minimum(np.minimum(hi[:, :w], hi[:, 1:w + 1]), hi[:, 2:])
+        mid = _med3(mid[:, :w], mid[:, 1:w + 1], mid[:, 2:])
+        out[y0:y1] = _med3(lo, mid, hi)
+    return out
+
+
 def consistency_guard(result: MethodResult, buf, z: float = 3.0) -> MethodResult:
     """Reject reconstructed pixels that contradict their own samples.
 
@@ -265,10 +300,7 @@ def consistency_guard(result: MethodResult, buf, z: float = 3.0) -> MethodResult
     # floor: the 3x3 median of the standard errors, so a pixel whose few
     # subsets agreed by chance (e.g. all missed a rare light path) is judged
     # with its neighbourhood's noise level, not with a near-zero one
-    h, w = sd.shape[:2]
-    pad = np.pad(sd, ((1, 1), (1, 1), (0, 0)), mode="edge")
-    sd = np.maximum(sd, np.median(np.stack([pad[i:i + h, j:j + w] for i in range(3) for j in range(3)],
-                                           axis=-1), axis=-1))
+    sd = np.maximum(sd, median3x3(sd))
     thr = t_quantile(z, np.maximum(buf.k - 1.0, 1.0))[..., None]
     with np.errstate(invalid="ignore"):
         off = np.abs(result.image - mean) > thr * sd

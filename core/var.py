@@ -107,6 +107,8 @@ Measurements and design notes: docs/notes/var.md
 """
 from __future__ import annotations
 
+import hashlib
+import threading
 from dataclasses import dataclass
 
 import numpy as np
@@ -213,6 +215,50 @@ def pixel_priority(buf: Buffers, params: Params) -> np.ndarray:
     lum = luminance(np.where(np.isfinite(mean), mean, 0.0))
     lum = np.where(np.all(np.isfinite(mean), axis=-1), lum, np.nan)
     return relative_deviation(pixel_variance(buf), lum, params)
+
+
+def _priority_key(buf: Buffers, params: Params) -> tuple:
+    """What :func:`pixel_priority` depends on: the exact bytes (SHA-256),
+    dtype and shape of ``buf.color.mean``, ``buf.color.m2`` and ``buf.k``,
+    and the two Eq. 12 parameters.  Contents, not identities: the loop merges
+    renders into the same arrays in place."""
+    h = hashlib.sha256()
+    parts = []
+    for a in (buf.color.mean, buf.color.m2, buf.k):
+        a = np.ascontiguousarray(a)
+        parts.append((a.dtype.str, a.shape))
+        h.update(memoryview(a).cast("B"))
+    return (tuple(parts), h.digest(), float(params.epsilon), bool(params.epsilon_inside_sqrt))
+
+
+#: single entry (key, read-only priority): the loop's secant steps call the
+#: sampler several times on the same Buffers (on copies of its state) before
+#: the next render changes them.  Outside ``state``, so checkpoints and deep
+#: copies never carry it.
+_PRIORITY_CACHE: list = [None]
+_PRIORITY_LOCK = threading.Lock()
+
+
+def cached_priority(buf: Buffers, params: Params) -> np.ndarray:
+    """:func:`pixel_priority`, reused while ``buf``'s statistics and the
+    Eq. 12 parameters are unchanged (same values bit for bit: the entry is
+    keyed on the contents, see :func:`_priority_key`).  Read-only (H, W)."""
+    key = _priority_key(buf, params)
+    with _PRIORITY_LOCK:
+        entry = _PRIORITY_CACHE[0]
+    if entry is not None and entry[0] == key:
+        return entry[1]
+    pv = pixel_priority(buf, params)
+    pv.setflags(write=False)
+    with _PRIORITY_LOCK:
+        _PRIORITY_CACHE[0] = (key, pv)
+    return pv
+
+
+def clear_priority_cache() -> None:
+    """Drop the cached priority (frees its (H, W) array)."""
+    with _PRIORITY_LOCK:
+        _PRIORITY_CACHE[0] = None
 
 
 # ------------------------------------------------------------- reconstruction
@@ -343,7 +389,7 @@ def _next_samples(buf: Buffers, params: Params, state: dict, remaining: int,
     n = np.asarray(buf.n, np.float64).ravel()
     spp = np.where(np.isfinite(n) & (n > 0), n, 0.0)
     if itr < hi:
-        pv = pixel_priority(buf, params).ravel()
+        pv = cached_priority(buf, params).ravel()
         remaining, itr, cursor = threshold_phase(out, spp, pv, remaining, itr, cursor, params, wait)
     if itr >= hi and state.get("prob") is None:
         # Alg. 1: at itr == max_spp, Pvariance <- Pspp / max_spp (Alg. 2: carried ones kept)

@@ -1,7 +1,7 @@
 import numpy as np
 
 from core.buffers import Buffers
-from core.method import MethodResult, allocate, consistency_guard
+from core.method import MethodResult, allocate, consistency_guard, median3x3
 
 
 def _buf(rng, h=6, w=7, sigma=0.1):
@@ -50,3 +50,47 @@ def test_t_quantile_matches_student_t_tables():
     from core.method import t_quantile
     got = t_quantile(1.959964, np.array([1, 3, 10, 1000]))  # two-sided 95 %
     np.testing.assert_allclose(got, [12.706, 3.182, 2.228, 1.96], rtol=5e-3)
+
+
+def _median_stack(x):
+    h, w = x.shape[:2]
+    pad = np.pad(x, ((1, 1), (1, 1), (0, 0)), mode="edge")
+    with np.errstate(invalid="ignore"):
+        return np.median(np.stack([pad[i:i + h, j:j + w] for i in range(3) for j in range(3)], axis=-1),
+                         axis=-1)
+
+
+def test_median3x3_equals_np_median():
+    """Bit for bit np.median over the 9 edge-padded shifted planes: random,
+    tied, infinite, NaN and degenerate sizes (signed zeros aside, which the
+    guard never produces: its input is sqrt(max(v, 0)))."""
+    rng = np.random.default_rng(7)
+    for t in range(120):
+        h, w, c = (int(v) for v in rng.integers(1, 30, 3))
+        c = c % 3 + 1
+        x = [rng.random((h, w, c)), rng.integers(0, 3, (h, w, c)).astype(float),
+             rng.choice([0.0, 1.0, np.inf, 5e-324, 1e308], (h, w, c)),
+             np.where(rng.random((h, w, c)) < 0.05, np.nan, rng.random((h, w, c))),
+             np.where(rng.random((h, w, c)) < 0.1, -np.inf, rng.standard_normal((h, w, c)))][t % 5]
+        ref = _median_stack(x)
+        for rows in (1, 4, 64):
+            got = median3x3(x, rows)
+            assert got.dtype == ref.dtype and got.shape == ref.shape
+            assert np.array_equal(got.view(np.int64), ref.view(np.int64))
+
+
+def test_guard_uses_the_exact_median_floor():
+    """The guard's decisions with the stacked np.median floor, rebuilt here."""
+    from core.method import t_quantile
+    rng = np.random.default_rng(8)
+    for t in range(20):
+        buf = _buf(rng, h=int(rng.integers(1, 20)), w=int(rng.integers(1, 20)), sigma=[0.0, 0.1, 1.0][t % 3])
+        img = buf.color.mean + rng.normal(0, 0.3, buf.color.mean.shape) * (rng.random(buf.shape) < 0.3)[..., None]
+        res = consistency_guard(MethodResult(img, np.zeros(buf.shape)), buf, z=2.0)
+        var = buf.variance_of_mean()
+        known = buf.has_variance[..., None] & np.isfinite(var) & np.isfinite(buf.color.mean)
+        sd = np.sqrt(np.where(known, np.maximum(var, 0.0), 0.0))
+        sd = np.maximum(sd, _median_stack(sd))
+        thr = t_quantile(2.0, np.maximum(buf.k - 1.0, 1.0))[..., None]
+        bad = ((np.abs(img - buf.color.mean) > thr * sd) & known).any(-1) & known.all(-1)
+        np.testing.assert_array_equal(res.image, np.where(bad[..., None], buf.color.mean, img))

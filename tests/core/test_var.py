@@ -438,3 +438,65 @@ def test_hostile_input_finite(h, w, k, bad, frac, budget, seed, eps_in):
             buf.merge_group(np.full((h, w, 3), 0.5), m)
     d = var.denoise(subs[0], np.full((h, w, 3), bad))
     assert np.isfinite(d.image).all() and np.isfinite(d.error).all()
+
+
+# ------------------------------------------------------------ priority cache
+def _count_priority(monkeypatch):
+    calls = []
+    real = var.pixel_priority
+
+    def counted(buf, params):
+        calls.append(1)
+        return real(buf, params)
+    monkeypatch.setattr(var, "pixel_priority", counted)
+    return calls
+
+
+def test_priority_cache_reused_across_secant_steps(monkeypatch):
+    """The loop calls the sampler several times per iteration on deep copies
+    of the state; the priority is computed once, and the maps are those of a
+    cold cache."""
+    import copy
+    var.clear_priority_cache()
+    calls = _count_priority(monkeypatch)
+    rng = np.random.default_rng(5)
+    buf = Buffers.from_subsets([class_means(np.ones((H, W), int), rng) for _ in range(4)], [1] * 4)
+    p, state = var.Params(), {"seed": 1}
+    for budget in (300, 150, 450, 300):
+        s = copy.deepcopy(state)
+        got = var.sample_map(buf, None, budget, p, s)
+        var.clear_priority_cache()
+        cold = var.sample_map(buf, None, budget, p, copy.deepcopy(state))
+        np.testing.assert_array_equal(got, cold)
+        var.sample_map(buf, None, budget, p, copy.deepcopy(state))   # re-fills the cache
+    assert len(calls) == 1 + 4          # first fill + one after each clear
+    assert all(v is not var._PRIORITY_CACHE[0][1] for v in s.values())  # the cache is not in the state
+
+
+def test_priority_cache_never_stale(monkeypatch):
+    """In-place merges, new Buffers with the same id or n, and other Eq. 12
+    parameters all recompute: the entry is keyed on contents."""
+    var.clear_priority_cache()
+    calls = _count_priority(monkeypatch)
+    rng = np.random.default_rng(6)
+    buf = Buffers.from_subsets([class_means(np.ones((H, W), int), rng) for _ in range(4)], [1] * 4)
+    p = var.Params()
+    first = var.cached_priority(buf, p)
+    assert not first.flags.writeable
+    assert var.cached_priority(buf, p) is first and len(calls) == 1
+    buf.color.mean[3, 4, 1] += 1e-12                       # in place, same arrays
+    assert not np.array_equal(var.cached_priority(buf, p), first) and len(calls) == 2
+    buf.color.m2[0, 0, 0] *= 2.0
+    np.testing.assert_array_equal(var.cached_priority(buf, p), var.pixel_priority(buf, p))
+    buf.k[1, 1] += 1.0
+    np.testing.assert_array_equal(var.cached_priority(buf, p), var.pixel_priority(buf, p))
+    for q in (var.Params(epsilon=1e-2), var.Params(epsilon_inside_sqrt=True)):
+        np.testing.assert_array_equal(var.cached_priority(buf, q), var.pixel_priority(buf, q))
+    # a different frame with the same n (and possibly the same id once the old one is freed)
+    n_calls = len(calls)
+    other = Buffers.from_subsets([class_means(np.ones((H, W), int), rng) for _ in range(4)], [1] * 4)
+    np.testing.assert_array_equal(other.n, buf.n)
+    np.testing.assert_array_equal(var.cached_priority(other, p), var.pixel_priority(other, p))
+    assert len(calls) == n_calls + 2
+    del buf, other
+    var.clear_priority_cache()
