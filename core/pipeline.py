@@ -157,12 +157,15 @@ class AdaptiveRun:
     """State of one adaptive render of one frame."""
 
     def __init__(self, executor, options: Options, checkpoint: str | None = None, prior=None,
-                 method: Method | None = None):
+                 method: Method | None = None, started: float | None = None):
         """``method``: the :class:`core.method.Method` to run (default: the
         registered method ``options.method``; wrappers such as the oracle are
         passed here).  ``prior``: optional callable ``prior(buffers) -> Prior |
         None``, called once with the initial pass's Buffers (read only) to
-        give the samples carried from earlier frames (:class:`Prior`)."""
+        give the samples carried from earlier frames (:class:`Prior`).
+        ``started``: the ``time.perf_counter()`` from which ``max_seconds``
+        counts (default: the first call of :meth:`steps`; a job passes its own
+        start so the limit bounds its wall time, scene setup included)."""
         self.executor = executor
         self.options = options
         self.method = methods.method_for(options.method, options.params) if method is None else method
@@ -190,6 +193,10 @@ class AdaptiveRun:
         self.reused = np.zeros((self.height, self.width))  # samples merged from ``prior``
         self.prior_info: dict = {}
         self.history: list = []
+        self.started = started
+        self.time_limited = False       # True once max_seconds stopped the sampling
+        self.max_task_seconds = 0.0     # longest single task render (the limit's granularity)
+        self.sampling_seconds = 0.0     # elapsed() when the sampling ended
 
     # ------------------------------------------------------------- accounting
     @property
@@ -204,11 +211,23 @@ class AdaptiveRun:
     def _fraction(self) -> float:
         return min(1.0, self.samples_rendered / max(self.budget, 1))
 
+    def elapsed(self) -> float:
+        """Seconds since the run's clock started (``started``)."""
+        return 0.0 if self.started is None else time.perf_counter() - self.started
+
+    def _time_up(self) -> bool:
+        """``Options.max_seconds`` spent: checked before every task, so the
+        wall time exceeds the limit by at most one task's render."""
+        if self.options.max_seconds and self.elapsed() >= self.options.max_seconds:
+            self.time_limited = True
+        return self.time_limited
+
     # ------------------------------------------------------------------ steps
     def steps(self):
         """Generator of Progress; runs the loop to the end of the budget."""
         opts = self.options
-        t_start = time.perf_counter()
+        if self.started is None:
+            self.started = time.perf_counter()
         if self.buffers is None:
             yield from self._initial_pass()
             if self.prior is not None:
@@ -226,8 +245,7 @@ class AdaptiveRun:
         tol = max(1, int(0.009 * self.budget))  # the total lands within 1 % of the budget
         # up to TOP_UP extra iterations spend what rounding to rectangles left over
         while self.iteration < opts.iterations + TOP_UP and self.remaining > tol:
-            if opts.max_seconds and time.perf_counter() - t_start > opts.max_seconds:
-                yield Progress("plan", self.iteration, self._fraction(), "time budget reached")
+            if self._time_up():
                 break
             if not self.method.ADAPTIVE:
                 budget = self.remaining
@@ -239,36 +257,54 @@ class AdaptiveRun:
             # the noisy means) says so, and is not reconstructed per iteration
             result = (self.method.reconstruct(self.buffers, self.params)
                       if self.method.SAMPLER_USES_RESULT else None)
+            overshoot_before = self.overshoot
             tasks, covered, counts = self._plan_iteration(result, budget)
             self.timing.adapt += time.perf_counter() - t0
             if not tasks:
                 break
+            before = self.next_index
             tasks, self.next_index = regions.assign_offsets(tasks, self.next_index)
             yield Progress("plan", self.iteration, self._fraction(),
                            f"iteration {self.iteration + 1}: {len(tasks)} region tasks, "
                            f"{int(covered.sum())} samples", 0, len(tasks))
+            done = []
             for i, task in enumerate(self._render_tasks(tasks)):
+                done.append(task)
                 yield Progress("render", self.iteration, self._fraction(),
                                f"iteration {self.iteration + 1}: task {i + 1}/{len(tasks)}",
                                i + 1, len(tasks))
-            self.history.append({"iteration": self.iteration + 1, "tasks": len(tasks),
+            if len(done) < len(tasks):  # stopped by the time limit: keep what was rendered
+                self.next_index = regions.assign_offsets(done, before)[1]
+                covered = np.zeros_like(covered)
+                for t in done:
+                    covered[t.y0:t.y1, t.x0:t.x1] += t.samples
+                self.overshoot = overshoot_before + int(np.maximum(covered - counts, 0).sum())
+            self.history.append({"iteration": self.iteration + 1, "tasks": len(done),
                                  "samples": int(covered.sum()),
                                  "overshoot": int(covered.sum() - np.asarray(counts).sum())})
             self.iteration += 1
             self._save_checkpoint()
             yield Progress("checkpoint", self.iteration, self._fraction(),
                            f"iteration {self.iteration} done, {self.samples_rendered / self.pixels:.2f} spp")
+        self.sampling_seconds = self.elapsed()
+        if self.time_limited:
+            yield Progress("plan", self.iteration, self._fraction(),
+                           f"time limit of {opts.max_seconds:g} s reached after {self.elapsed():.2f} s")
         yield Progress("done", self.iteration, self._fraction(), "sampling done")
 
     def _initial_pass(self):
         tasks = subset_tasks(self.width, self.height, self.initial_spp, self.subsets, self.options.frame)
         self.buffers = Buffers.empty(self.height, self.width, self.feature_names)
+        last = tasks[0]
         for s, task in enumerate(tasks):
+            if s and self._time_up():  # one subset at least, so there is an image
+                break
             self._render_task(task)
+            last = task
             yield Progress("initial", 0, self._fraction(),
                            f"initial pass: subset {s + 1}/{len(tasks)} ({task.samples} spp)",
                            s + 1, len(tasks))
-        self.next_index[:] = tasks[-1].offset + tasks[-1].samples
+        self.next_index[:] = last.offset + last.samples
 
     def _capped(self, counts: np.ndarray) -> np.ndarray:
         """Apply ``Options.max_pixel_share`` to a map (same total when possible)."""
@@ -284,8 +320,12 @@ class AdaptiveRun:
     def _render_task(self, task) -> None:
         t0 = time.perf_counter()
         color, feats = self.executor.render(task)
-        self.timing.render += time.perf_counter() - t0
+        self._count_render(time.perf_counter() - t0)
         self._merge(task, color, feats)
+
+    def _count_render(self, seconds: float) -> None:
+        self.timing.render += seconds
+        self.max_task_seconds = max(self.max_task_seconds, seconds)
 
     def _merge(self, task, color, feats) -> None:
         t0 = time.perf_counter()
@@ -295,18 +335,27 @@ class AdaptiveRun:
 
     def _render_tasks(self, tasks):
         """Render and merge ``tasks`` in order (through the executor's
-        ``render_many`` when it has one); yields each task once merged."""
+        ``render_many`` when it has one); yields each task once merged.
+        Stops before a task once ``max_seconds`` is spent (the tasks merged
+        so far are kept)."""
         many = getattr(self.executor, "render_many", None)  # optional member, see module notes
         if many is None:
             for task in tasks:
+                if self._time_up():
+                    return
                 self._render_task(task)
                 yield task
             return
         results = iter(many(tasks))
         for task in tasks:
+            if self._time_up():  # the renders not yet taken are dropped
+                close = getattr(results, "close", None)
+                if close is not None:
+                    close()
+                return
             t0 = time.perf_counter()
             color, feats = next(results)
-            self.timing.render += time.perf_counter() - t0
+            self._count_render(time.perf_counter() - t0)
             self._merge(task, color, feats)
             yield task
 

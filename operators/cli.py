@@ -119,10 +119,14 @@ def build_parser(blender_command: bool = False, extra_commands=()) -> argparse.A
     d.add_argument("passes", help="an output EXR of `render`, or a Blender multilayer EXR with "
                    "Combined and Denoising passes")
     d.add_argument("--method", default="lp", choices=list(methods.DENOISERS))
-    d.add_argument("--out", help="output EXR (default PASSES.METHOD.exr)")
-    d.add_argument("--reference")
-    d.add_argument("--overwrite", action="store_true")
-    d.add_argument("--json", action="store_true")
+    d.add_argument("--out", help="output EXR (default NAME.METHOD.exr beside the input, its method "
+                   "suffix replaced: shot.lp.exr -> shot.awr.exr; the input is never replaced)")
+    d.add_argument("--reference", help="reference EXR to measure relMSE against")
+    d.add_argument("--overwrite", action="store_true", help="replace existing output files")
+    d.add_argument("--no-preview", action="store_true",
+                   help="do not write the PNG preview (default: OUT.png, in the colour management of "
+                        "the open scene: the factory default's under ./cycles-adaptive)")
+    d.add_argument("--json", action="store_true", help="print one JSON object as the last line")
     add_dataclass_flags(d, [fields_by_name(Options)["guard_z"]])
     add_method_params(d, methods.DENOISERS)
 
@@ -205,21 +209,60 @@ def _render_frame(args, scene, vl, opts, cluster) -> int:
     job = RenderJob(scene, vl, opts, out, reference=args.reference, overwrite=args.overwrite,
                     resume=args.resume, preview=not args.no_preview,
                     executor_factory=farm.executor_for(cluster, out))
-    interrupted = False
     last = 0.0
-    try:
-        for step in job.steps():
-            now = time.perf_counter()
-            if not args.quiet and (step.stage != "render" or now - last > 0.5 or
-                                   step.tasks_done == step.tasks_total):
-                print(f"[cycles-adaptive] {100 * step.fraction:5.1f}% {step.message}", flush=True)
-                last = now
-    except KeyboardInterrupt:
-        interrupted = True
+    steps = job.steps()
+    with _SigintFlag() as flag:
+        try:
+            for step in steps:
+                now = time.perf_counter()
+                if not args.quiet and (step.stage != "render" or now - last > 0.5 or
+                                       step.tasks_done == step.tasks_total):
+                    print(f"[cycles-adaptive] {100 * step.fraction:5.1f}% {step.message}", flush=True)
+                    last = now
+                if flag.set:  # Ctrl-C during a render: stop at its end
+                    break
+        except KeyboardInterrupt:
+            flag.set = True
+        finally:
+            steps.close()
+    interrupted = flag.set
+    if interrupted:
         print("[cycles-adaptive] interrupted: writing the partial result", file=sys.stderr, flush=True)
     summary = job.finish(partial=interrupted)
     _report(summary, args.json)
     return EXIT_INTERRUPT if interrupted else EXIT_OK
+
+
+class _SigintFlag:
+    """Ctrl-C as a flag the render loop checks between tasks: Blender's render
+    swallows a KeyboardInterrupt raised inside ``bpy.ops.render.render``
+    (traceback, then the run went on), so SIGINT only sets ``set`` and the
+    loop stops at the end of the current render.  The previous handler is
+    restored on exit; a second Ctrl-C while stopping raises as usual."""
+
+    def __init__(self):
+        self.set = False
+        self._previous = None
+
+    def _handle(self, signum, frame):
+        if self.set:
+            raise KeyboardInterrupt
+        self.set = True
+
+    def __enter__(self):
+        import signal
+        import threading
+        if threading.current_thread() is threading.main_thread():
+            self._previous = signal.signal(signal.SIGINT, self._handle)
+            if self._previous is signal.SIG_IGN:  # started with Ctrl-C ignored: keep it so
+                signal.signal(signal.SIGINT, signal.SIG_IGN)
+        return self
+
+    def __exit__(self, *exc):
+        import signal
+        if self._previous is not None:
+            signal.signal(signal.SIGINT, self._previous)
+        return False
 
 
 def _render_frames(args, scene, vl, opts, cluster=None) -> int:
@@ -260,19 +303,55 @@ def bpy_filepath() -> str:
     return bpy.data.filepath or "untitled.blend"
 
 
+def denoise_out(passes: str, method: str) -> str:
+    """Default output of ``denoise``: ``NAME.METHOD.exr`` beside the input,
+    where a method suffix of the input is replaced, not doubled
+    (``shot.lp.exr`` denoised with awr gives ``shot.awr.exr``)."""
+    stem = os.path.splitext(os.path.abspath(passes))[0]
+    base, dot, last = stem.rpartition(".")
+    if dot and base and last in methods.METHODS:
+        stem = base
+    return f"{stem}.{method}.exr"
+
+
+def _same_file(a: str, b: str) -> bool:
+    if os.path.abspath(a) == os.path.abspath(b):
+        return True
+    return os.path.exists(a) and os.path.exists(b) and os.path.samefile(a, b)
+
+
 def cmd_denoise(args) -> int:
     """``denoise``: :func:`operators.job.denoise_output` (the API's
-    ``denoise`` too), then the EXR written."""
+    ``denoise`` too), then the EXR and its PNG preview written.  The input is
+    never replaced, even with ``--overwrite``.  The preview uses the colour
+    management of ``bpy.context.scene``: the factory scene's (AgX in Blender
+    4.x) under ``./cycles-adaptive``, the opened file's under ``blender -b
+    shot.blend -c cycles_adaptive denoise``."""
     from ..core import io as imageio
-    from .job import denoise_output, write_output
+    from .job import denoise_output, preview_path, write_output
     t0 = time.perf_counter()
-    out = os.path.abspath(args.out or os.path.splitext(args.passes)[0] + f".{args.method}.exr")
+    out = os.path.abspath(args.out or denoise_out(args.passes, args.method))
+    preview = None if args.no_preview else preview_path(out)
+    for path in (out, preview):
+        if path and _same_file(path, args.passes):
+            raise UserError(f"{path}: the output would replace the input {args.passes}; give another --out")
     imageio.check_writable(out, args.overwrite)
+    if preview:
+        imageio.check_writable(preview, args.overwrite)
     output = denoise_output(args.passes, args.method, method_params(args, args.method), args.guard_z,
                             reference=args.reference)
+    for line in output.summary.get("warnings", ()):
+        print(f"warning: {line}", file=sys.stderr, flush=True)
     write_output(output, out)
+    if preview:
+        import bpy
+        from ..addon.executor import write_preview
+        combined = output.passes["Combined"]
+        write_preview(bpy.context.scene, combined[0] if isinstance(combined, tuple) else combined, preview)
+        output.summary["preview_view_transform"] = bpy.context.scene.view_settings.view_transform
     output.summary["total_seconds"] = time.perf_counter() - t0
     output.summary["out"] = out
+    output.summary["preview"] = preview
     _report(output.summary, args.json)
     return EXIT_OK
 

@@ -13,7 +13,8 @@ Outputs (written atomically; an existing file is never replaced unless
   ``Combined`` (result RGB + mean alpha), ``Noisy``, ``Variance`` (of the mean,
   0 where unknown), ``M2``, ``Samples``, ``Groups``, ``Error`` (estimated
   squared error), ``NextIndex`` and ``Feat_<name>`` / ``Feat_<name>_M2`` for every
-  feature pass: all that ``denoise`` needs to re-run any method later.
+  feature pass: all that ``denoise`` needs to re-run any method later (every
+  render keeps :func:`denoise_passes`, whatever its own method reads).
 - ``OUT.png``: preview in the scene's view transform.
 - ``OUT.exr.checkpoint.npz`` after every iteration, removed after a complete
   run, kept after a cancel so ``--resume`` continues.  A job without ``out``
@@ -21,6 +22,7 @@ Outputs (written atomically; an existing file is never replaced unless
 """
 from __future__ import annotations
 
+import dataclasses
 import json
 import os
 import time
@@ -48,6 +50,20 @@ def checkpoint_path(out: str) -> str:
 
 def preview_path(out: str) -> str:
     return os.path.splitext(out)[0] + ".png"
+
+
+def denoise_passes() -> tuple:
+    """The feature passes some ``denoise`` method reads (the union of the
+    denoisers' ``PASSES``: albedo, normal, depth).  A render keeps them in its
+    output so that any method can be re-run on it later; the cost is measured
+    in docs/notes/denoise-cli.md."""
+    out = []
+    for name in methods.DENOISERS:
+        try:
+            out.extend(methods.get(name).PASSES)
+        except ImportError:
+            continue
+    return tuple(dict.fromkeys(out))
 
 
 def load_reference(path: str | None, shape) -> np.ndarray | None:
@@ -246,17 +262,22 @@ class RenderJob:
     def __init__(self, scene, view_layer, options: Options, out: str | None, reference: str | None = None,
                  overwrite: bool = False, resume: bool = False, preview: bool = True,
                  keep_checkpoint: bool = False, method=None, prior=None, reconstructor=None,
-                 executor_factory=None):
+                 executor_factory=None, keep_denoise_passes: bool = True):
         """``out``: the output EXR, or None to write nothing (no checkpoint,
         no outputs: the API); ``method``: a :class:`core.method.Method` object
         (default: the registered ``options.method``); ``prior``: the run's
         source of carried samples (``core.pipeline.Prior``);
         ``reconstructor(run) -> MethodResult`` replaces the method's final
-        reconstruction (LP's temporal extension)."""
+        reconstruction (LP's temporal extension); ``keep_denoise_passes``:
+        also render :func:`denoise_passes` so ``denoise`` can re-run any
+        method on the output (False only to measure what they cost)."""
         from ..addon import executor as ex
         self.ex = ex
         ex.check_scene(scene, view_layer)
         self.scene, self.view_layer = scene, view_layer
+        if keep_denoise_passes:
+            options = dataclasses.replace(
+                options, features=tuple(dict.fromkeys(tuple(options.features) + denoise_passes())))
         self.options = options
         self.out = os.path.abspath(bpy_path(out)) if out else None
         self.ckpt = checkpoint_path(self.out) if self.out else None
@@ -293,7 +314,7 @@ class RenderJob:
         with self.executor:
             self.camera = self.executor.camera_info(self.options.frame)
             self.run = AdaptiveRun(self.executor, self.options, checkpoint=self.ckpt, prior=self.prior,
-                                   method=self.method)
+                                   method=self.method, started=self.t0)
             if self.resume:
                 try:
                     self.run.load_checkpoint(self.ckpt)
@@ -347,6 +368,10 @@ class RenderJob:
             "out": self.out,
             "preview": preview_path(self.out) if self.preview else None,
             "partial": bool(partial),
+            "time_limited": bool(run.time_limited),
+            "max_seconds": self.options.max_seconds,
+            "sampling_seconds": run.sampling_seconds,
+            "max_task_seconds": run.max_task_seconds,
             "reused_samples": int(run.reused.sum()),
             "reprojected_fraction": float((run.reused > 0).mean()),
             "blender": bpy.app.version_string,
@@ -401,6 +426,7 @@ def denoise_output(path: str, method: str, params: dict | None = None, guard_z: 
         params_obj = params_from_dict(mod.Params, params)
     except (ValueError, TypeError) as exc:
         raise JobError(str(exc)) from None
+    warnings = input_warnings(path, buf, method)
     t1 = time.perf_counter()
     guard_z = Options().guard_z if guard_z is None else guard_z
     result = consistency_guard(mod.reconstruct(buf, params_obj), buf, guard_z)
@@ -412,11 +438,41 @@ def denoise_output(path: str, method: str, params: dict | None = None, guard_z: 
     summary = {"method": method, "width": w, "height": h,
                "spp_mean": float(buf.n.mean()), "render_seconds": 0.0,
                "reconstruct_seconds": t_rec, "total_seconds": time.perf_counter() - t0,
-               "regions": 0, "peak_rss_mb": peak_rss_mb(), "out": None}
+               "regions": 0, "peak_rss_mb": peak_rss_mb(), "out": None, "preview": None,
+               "preview_view_transform": None,
+               "no_variance_fraction": float(1.0 - buf.has_variance.mean()), "warnings": warnings}
     _info_fields(summary, result.info)
     if ref is not None:
         summary.update(metrics.summary(image, error, ref))
     return Output(out_passes, meta.get("layer") or "ViewLayer", {"cycles_adaptive/method": method}, summary)
+
+
+#: what each denoiser does where a pixel has no variance estimate (one sample
+#: group, e.g. a plain Blender render); read from each method's code
+NO_VARIANCE = {
+    "awr": "AWR thresholds its wavelets with Donoho's median estimate of the image's noise "
+           "(finest diagonal wavelets) instead of per-pixel variance, and its error estimate rests on it",
+    "lp": "LP's window selection subtracts no variance (the literal Eq. 5/7; the centre never keeps "
+          "its own value) and its error estimate there is the largest finite one (0 if none)",
+    "rhf": "RHF takes each missing variance from the nearest pixels that have one, or Immerkaer's "
+           "noise estimate of the whole image where none has",
+    "oidn": "OIDN denoises as usual but its error estimate is 0 there (no variance to recorrupt "
+            "halves from)",
+}
+
+
+def input_warnings(path: str, buf, method: str) -> list:
+    """One-line warnings about what ``path`` lacks for ``method``: pixels
+    without a variance estimate (fewer than two sample groups), and what the
+    method then does (:data:`NO_VARIANCE`); the consistency guard cannot check
+    those pixels either."""
+    missing = 1.0 - float(buf.has_variance.mean())
+    if missing <= 0.0:
+        return []
+    what = ("has no variance (one sample group per pixel, e.g. a plain Blender render)"
+            if missing >= 1.0 else f"has no variance on {100 * missing:.1f}% of its pixels (one sample group)")
+    return [f"{path} {what}: {NO_VARIANCE.get(method, method + ' reconstructs without it')}; "
+            "the consistency guard leaves those pixels unchecked"]
 
 
 def bpy_path(path: str) -> str:

@@ -111,7 +111,9 @@ def test_render_restores_the_scene_writes_nothing_and_opens_no_window(tmp_path, 
     before = _settings(scene)
     windows = len(bpy.context.window_manager.windows)
     result = api.render(scene, method="var", spp=4, initial_spp=2, subsets=2, resolution_percentage=50)
-    assert result.shape == (15, 20) and result.features == {} and result.alpha.shape == (15, 20)
+    assert result.shape == (15, 20) and result.alpha.shape == (15, 20)
+    # every render keeps the passes the denoisers read, so any method can re-run on it
+    assert set(result.features) == {"albedo", "normal", "depth"}
     assert _settings(scene) == before
     assert len(bpy.context.window_manager.windows) == windows
     assert (blend.read_bytes(), os.stat(blend).st_mtime_ns) == stat
@@ -193,10 +195,15 @@ def test_bad_arguments_raise_api_error_naming_the_problem(call, needle):
     assert needle in str(err.value) and "\n" not in str(err.value)
 
 
-def test_denoise_refuses_a_method_whose_passes_are_missing(saved):
-    _, path = saved  # a uniform render keeps no feature passes
-    with pytest.raises(api.Error, match="needs the"):
-        api.denoise(path, method="lp")
+def test_denoise_refuses_a_method_whose_passes_are_missing(saved, tmp_path):
+    from cycles_adaptive.core import io as imageio
+    _, path = saved
+    passes, meta = imageio.read_layers(str(path))
+    slim = tmp_path / "slim.exr"  # the same output without its normal pass
+    imageio.write_layers(str(slim), {k: v for k, v in passes.items() if not k.startswith("Feat_normal")},
+                         layer=meta.get("layer") or "ViewLayer")
+    with pytest.raises(api.Error, match="needs the normal pass"):
+        api.denoise(str(slim), method="lp")
 
 
 def test_compare_refuses_bad_thresholds(saved):

@@ -191,3 +191,33 @@ def test_frame_range_outside_the_scene_is_refused(tmp_path):
              "--out", str(tmp_path / "x_####.exr"))
     assert r.returncode == 2 and "outside the scene's frame range" in r.stderr
     assert not list(tmp_path.iterdir())
+
+
+def test_ctrl_c_mid_render_stops_at_its_end_and_writes_a_readable_partial_exr(tmp_path):
+    """SIGINT while Cycles renders a subset: the run stops after that render
+    (Blender would otherwise swallow the KeyboardInterrupt), exit 130."""
+    blend = _blend(tmp_path, width=64, height=48)
+    out = str(tmp_path / "mid.exr")
+    p = _start(["render", blend, "--out", out, "--method", "var", "--spp", "1000", "--initial-spp", "64",
+                "--subsets", "8", "--task-cost", "64", "--no-preview", "--json"])
+    _wait_for(p, "initial pass: subset 1/8")  # subset 2 is rendering now
+    p.send_signal(signal.SIGINT)
+    stdout, stderr = p.communicate(timeout=300)
+    assert p.returncode == 130, stderr[-2000:]
+    res = _last_json(stdout)
+    assert res["partial"] is True and res["spp_mean"] < 64
+    passes = _exr_arrays(out)
+    assert np.isfinite(passes["Combined"]).all()
+    assert passes["Samples"].sum() == pytest.approx(res["spp_mean"] * 64 * 48)
+
+
+def test_max_seconds_bounds_the_wall_time(tmp_path):
+    blend = _blend(tmp_path, width=48, height=32)
+    limit = 2.0
+    r = _cli("render", blend, "--out", str(tmp_path / "t.exr"), *LONG_RUN, "--max-seconds", str(limit))
+    assert r.returncode == 0, r.stderr
+    res = _last_json(r.stdout)
+    assert res["time_limited"] is True and res["max_seconds"] == limit and res["spp_mean"] < 1000
+    # the run's own longest task is the granularity of the check
+    assert res["total_seconds"] <= limit * 1.1 + res["max_task_seconds"], res
+    assert res["sampling_seconds"] <= limit + res["max_task_seconds"]

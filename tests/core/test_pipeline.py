@@ -189,3 +189,81 @@ def test_an_executor_rendering_tasks_in_batches_gives_the_identical_image():
     np.testing.assert_array_equal(a.buffers.color.mean, b.buffers.color.mean)
     np.testing.assert_array_equal(a.buffers.color.m2, b.buffers.color.m2)
     assert a.tasks_rendered == b.tasks_rendered
+
+
+class _Clock:
+    """A fake ``time.perf_counter``: time moves only when the slow executor
+    renders (so the test has no wall-clock bound and is deterministic)."""
+
+    def __init__(self):
+        self.now = 100.0
+
+    def __call__(self):
+        return self.now
+
+
+class SlowExecutor(FakeExecutor):
+    """Every task takes ``seconds`` on the fake clock."""
+
+    def __init__(self, truth, clock, seconds):
+        super().__init__(truth)
+        self.clock, self.seconds = clock, seconds
+
+    def render(self, task):
+        self.clock.now += self.seconds
+        return super().render(task)
+
+
+def _timed_run(monkeypatch, limit, seconds=1.0, **kw):
+    import types
+    import core.pipeline as pipeline
+    clock = _Clock()
+    monkeypatch.setattr(pipeline, "time", types.SimpleNamespace(perf_counter=clock))
+    ex = SlowExecutor(_truth(24, 40), clock, seconds)
+    opts = Options(method="var", spp=40, initial_spp=2, subsets=2, iterations=6, task_cost=0,
+                   min_task_size=4, max_seconds=limit, **kw)
+    run = AdaptiveRun(ex, opts, started=clock.now)
+    steps = list(run.steps())
+    return run, ex, clock, steps
+
+
+def test_time_limit_is_checked_before_every_task(monkeypatch):
+    """The loop stops before the task that would start past the limit, also
+    inside an iteration: wall time <= limit + one task."""
+    unlimited, ex_all, _, _ = _timed_run(monkeypatch, 0.0)
+    iteration_tasks = max(h["tasks"] for h in unlimited.history)
+    assert iteration_tasks >= 5  # so a limit can fall inside an iteration
+    limit = 2 + iteration_tasks // 2 + 0.5  # initial pass (2 subsets) + half an iteration
+    run, ex, clock, steps = _timed_run(monkeypatch, limit)
+    assert run.time_limited and run.max_task_seconds == 1.0
+    assert run.elapsed() <= limit + run.max_task_seconds
+    assert len(ex.tasks) == int(np.ceil(limit))  # every task that started before the limit
+    assert len(ex.tasks) < len(ex_all.tasks)
+    assert any("time limit" in s.message for s in steps) and steps[-1].stage == "done"
+    # the partial iteration's samples are kept and counted exactly
+    n = np.zeros(run.buffers.shape)
+    for t in ex.tasks:
+        n[t.y0:t.y1, t.x0:t.x1] += t.samples
+    np.testing.assert_array_equal(run.buffers.n, n)
+    assert run.samples_rendered == int(n.sum()) and run.tasks_rendered == len(ex.tasks)
+    assert sum(h["samples"] for h in run.history) == int(n.sum()) - 2 * run.pixels
+    # next_index continues the rendered sequences only, so no index is skipped at an
+    # untouched pixel and none is reused
+    used = np.zeros(run.buffers.shape, np.int64)
+    for t in ex.tasks:
+        assert (run.next_index[t.y0:t.y1, t.x0:t.x1] >= t.offset + t.samples).all()
+        used[t.y0:t.y1, t.x0:t.x1] = np.maximum(used[t.y0:t.y1, t.x0:t.x1], t.offset + t.samples)
+    np.testing.assert_array_equal(run.next_index, used)
+
+
+def test_time_limit_during_the_initial_pass_keeps_one_subset(monkeypatch):
+    run, ex, _, _ = _timed_run(monkeypatch, 0.5, seconds=1.0)
+    assert run.time_limited and len(ex.tasks) == 1
+    assert (run.buffers.n == ex.tasks[0].samples).all()
+    assert np.isfinite(run.reconstruct().image).all()
+
+
+def test_no_time_limit_is_not_time_limited(monkeypatch):
+    run, ex, _, _ = _timed_run(monkeypatch, 0.0)
+    assert not run.time_limited
+    assert abs(run.samples_rendered - 40 * run.pixels) <= 0.01 * 40 * run.pixels + 1
