@@ -149,7 +149,10 @@ def plain_blender_exr(tmp_path_factory):
     scene = build_scene(width=24, height=16)
     scene.cycles.samples = 4
     scene.view_layers[0].cycles.denoising_store_passes = True
-    scene.render.image_settings.file_format = "OPEN_EXR_MULTILAYER"
+    settings = scene.render.image_settings
+    if hasattr(settings, "media_type"):  # Blender 5.0: the media type comes first
+        settings.media_type = "MULTI_LAYER_IMAGE"
+    settings.file_format = "OPEN_EXR_MULTILAYER"
     scene.render.filepath = str(path)
     bpy.ops.render.render(write_still=True)
     assert path.is_file()
