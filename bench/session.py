@@ -292,9 +292,9 @@ class Session:
                 opts = Options(method=name, spp=float(budget), frame=frame, seed=self.cfg["seed"],
                                max_seconds=self.cfg["run_max_seconds"])
                 run = AdaptiveRun(exe, opts, method=OracleMethod(mod, ref) if oracle else None)
-                capped = False
-                for step in run.steps():
-                    capped |= step.message == "time budget reached"
+                for _ in run.steps():
+                    pass
+                capped = run.time_limited  # --run-max-seconds stopped the sampling
                 result = run.reconstruct()
             wall = time.perf_counter() - t0
         except Exception as exc:
