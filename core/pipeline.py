@@ -35,6 +35,7 @@ from __future__ import annotations
 
 import copy
 import json
+import threading
 import time
 from dataclasses import asdict, dataclass, field, fields
 
@@ -113,16 +114,60 @@ def option_fields(where: str) -> list:
     return [f for f in fields(Options) if f.metadata.get(where, True)]
 
 
+class Work:
+    """A pure computation the loop is about to wait for (no bpy inside).
+
+    The loop yields it in a :class:`Progress` and then calls :meth:`result`, so
+    a consumer that ignores it gets the computation inline, and one that keeps a
+    UI responsive may call :meth:`run` on a worker thread (numpy releases the
+    GIL) and resume the loop once :attr:`done`.  ``run`` is idempotent and
+    thread-safe: a second caller waits for the first; an exception is stored
+    and re-raised by :meth:`result`.
+    """
+
+    def __init__(self, fn, label: str = ""):
+        self.fn = fn
+        self.label = label
+        self._lock = threading.Lock()
+        self._done = threading.Event()
+        self._value = None
+        self._error: BaseException | None = None
+
+    @property
+    def done(self) -> bool:
+        return self._done.is_set()
+
+    def run(self) -> None:
+        with self._lock:
+            if self._done.is_set():
+                return
+            try:
+                self._value = self.fn()
+            except BaseException as exc:  # handed to the caller of result()
+                self._error = exc
+            finally:
+                self.fn = None
+                self._done.set()
+
+    def result(self):
+        self.run()
+        if self._error is not None:
+            raise self._error
+        return self._value
+
+
 @dataclass
 class Progress:
-    """One step of the loop, for progress bars and batch log lines."""
+    """One step of the loop, for progress bars and batch log lines.  ``work``:
+    the computation the loop waits for next (see :class:`Work`), or None."""
 
-    stage: str            # "initial", "plan", "render", "checkpoint", "done"
+    stage: str            # "initial", "adapt", "plan", "render", "checkpoint", "done"
     iteration: int
     fraction: float       # 0..1 of the sample budget rendered
     message: str
     tasks_done: int = 0
     tasks_total: int = 0
+    work: Work | None = None
 
 
 @dataclass
@@ -252,14 +297,11 @@ class AdaptiveRun:
             else:
                 left = max(1, opts.iterations - self.iteration)
                 budget = self.remaining if left <= 1 else int(self.remaining / left)
-            t0 = time.perf_counter()
-            # a method whose sampler ignores the reconstruction (AWR: Eq. 8 reads
-            # the noisy means) says so, and is not reconstructed per iteration
-            result = (self.method.reconstruct(self.buffers, self.params)
-                      if self.method.SAMPLER_USES_RESULT else None)
             overshoot_before = self.overshoot
-            tasks, covered, counts = self._plan_iteration(result, budget)
-            self.timing.adapt += time.perf_counter() - t0
+            work = Work(lambda b=budget: self._adapt(b),
+                        f"iteration {self.iteration + 1}: adapting ({self.method.NAME})")
+            yield Progress("adapt", self.iteration, self._fraction(), work.label, work=work)
+            tasks, covered, counts = work.result()
             if not tasks:
                 break
             before = self.next_index
@@ -358,6 +400,18 @@ class AdaptiveRun:
             self._count_render(time.perf_counter() - t0)
             self._merge(task, color, feats)
             yield task
+
+    def _adapt(self, budget: int):
+        """One iteration's adaptation (pure numpy): the reconstruction the
+        sampler reads, the sample map and its plan; timed as ``adapt``."""
+        t0 = time.perf_counter()
+        # a method whose sampler ignores the reconstruction (AWR: Eq. 8 reads
+        # the noisy means) says so, and is not reconstructed per iteration
+        result = (self.method.reconstruct(self.buffers, self.params)
+                  if self.method.SAMPLER_USES_RESULT else None)
+        planned = self._plan_iteration(result, budget)
+        self.timing.adapt += time.perf_counter() - t0
+        return planned
 
     def _plan_iteration(self, result, budget: int):
         """Ask the method for ``budget`` samples and plan them into tasks.

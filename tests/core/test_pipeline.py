@@ -267,3 +267,46 @@ def test_no_time_limit_is_not_time_limited(monkeypatch):
     run, ex, _, _ = _timed_run(monkeypatch, 0.0)
     assert not run.time_limited
     assert abs(run.samples_rendered - 40 * run.pixels) <= 0.01 * 40 * run.pixels + 1
+
+
+def test_adaptation_is_yielded_as_work_a_thread_may_run():
+    """Each iteration's adaptation comes as a Progress("adapt") carrying a Work;
+    running it on another thread gives the same run as running it inline."""
+    import threading
+    from core.pipeline import Work
+
+    def run_with(threaded):
+        run = AdaptiveRun(FakeExecutor(_truth(24, 24)), Options(method="var", spp=8, initial_spp=2,
+                                                                subsets=2, task_cost=64))
+        adapts = 0
+        for st in run.steps():
+            if st.stage == "adapt":
+                assert isinstance(st.work, Work) and not st.work.done
+                adapts += 1
+                if threaded:
+                    t = threading.Thread(target=st.work.run)
+                    t.start()
+                    t.join()
+                    assert st.work.done
+        return run, adapts
+
+    a, na = run_with(False)
+    b, nb = run_with(True)
+    assert na == nb == a.iteration >= 2
+    np.testing.assert_array_equal(a.buffers.n, b.buffers.n)
+    np.testing.assert_array_equal(a.buffers.color.mean, b.buffers.color.mean)
+
+
+def test_work_runs_once_and_reraises():
+    from core.pipeline import Work
+    calls = []
+    w = Work(lambda: calls.append(1) or 7, "x")
+    assert not w.done
+    w.run()
+    w.run()
+    assert w.done and w.result() == 7 and calls == [1]
+    bad = Work(lambda: 1 / 0)
+    with pytest.raises(ZeroDivisionError):
+        bad.result()
+    with pytest.raises(ZeroDivisionError):  # stored, raised again
+        bad.result()
