@@ -41,7 +41,8 @@ def add_arguments(p) -> None:
     p.add_argument("--budgets", help="comma-separated mean spp budgets (default 4,8,16,32)")
     p.add_argument("--out", default=None, help="output folder (default bench_out/ in the repo)")
     p.add_argument("--quick", action="store_true", help="smallest useful run: cornell at 25%% "
-                   "(32x32), budget 8, every method, oracles and peers, uniform at 4/8/32 spp, "
+                   "(32x32), budget 8, every method, oracles, uniform-sampling runs and peers, "
+                   "uniform at 4/8/32 spp, "
                    "a tiny scaling section; under a minute on 2 cores")
     p.add_argument("--resolution-percentage", type=int, default=None,
                    help="render the scenes at this %% (default 100; --quick: 25)")
@@ -52,7 +53,10 @@ def add_arguments(p) -> None:
     p.add_argument("--no-render-references", action="store_true",
                    help="fail instead of rendering a missing reference")
     p.add_argument("--no-oracle", action="store_true", help="skip the oracle runs")
-    p.add_argument("--oracle-budgets", help="budgets of the oracle runs (default: all budgets)")
+    p.add_argument("--oracle-budgets", help="budgets of the oracle and uniform-sampling runs "
+                   "(default: all budgets)")
+    p.add_argument("--no-uniform-sampling", action="store_true", help="skip the uniform-<method> "
+                   "runs (each adaptive method's reconstruction on uniformly rendered samples)")
     p.add_argument("--no-peers", action="store_true", help="skip OIDN and Cycles adaptive sampling")
     p.add_argument("--scaling-percentages", default=None,
                    help="resolution %% of the first scene for the scaling section, comma-separated "
@@ -124,6 +128,7 @@ def resolve_config(args) -> dict:
             "resolution_percentage": int(pct), "uniform_spp": uniform,
             "reference_spp": int(args.reference_spp), "reference_dir": args.reference_dir,
             "render_references": not args.no_render_references, "oracle": not args.no_oracle,
+            "uniform_sampling": not args.no_uniform_sampling,
             "oracle_budgets": [b for b in oracle_budgets], "peers": not args.no_peers,
             "scaling_percentages": scaling, "scaling_methods": scaling_methods,
             "max_samples_factor": int(args.max_samples_factor or q.get("max_samples_factor") or 16),

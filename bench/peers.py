@@ -116,6 +116,15 @@ class PlainCycles:
         return out
 
 
+def denoise_timing(with_oidn: dict, without: dict) -> dict:
+    """OIDN's own seconds: a render with the denoiser minus the same render
+    (same spp, seed, size) without it, clamped at 0, and per megapixel."""
+    h, w = with_oidn["rgb"].shape[:2]
+    sec = max(with_oidn["seconds"] - without["seconds"], 0.0)
+    return {"denoise_seconds": sec, "render_seconds_without_denoiser": without["seconds"],
+            "denoise_s_per_mp": sec / (h * w / 1e6) if h * w else None}
+
+
 def _peer_error(name: str, budget: int, error: str) -> tuple:
     return {"kind": "peer", "name": name, "budget": budget, "status": "error", "error": error}, None
 
@@ -147,8 +156,9 @@ def run_peers(scene, vl, pattern, budget, ref, ours, search, cfg) -> list:
     try:
         with PlainCycles(scene, vl, cfg["seed"], pattern) as pc:
             try:
-                out.append(rec_of("oidn", pc.render(budget, denoise=True),
-                                  {"settings": dict(OIDN_SETTINGS)}))
+                on = pc.render(budget, denoise=True)
+                out.append(rec_of("oidn", on, {"settings": dict(OIDN_SETTINGS),
+                                               **denoise_timing(on, pc.render(budget))}))
             except Exception as exc:
                 out.append(_peer_error("oidn", budget, err_text(exc)))
             if target is None:

@@ -98,8 +98,8 @@ def plot_scene(name, d, path):
                       if r["name"] == n and r.get("status") == "ok"), key=lambda p: p[2])
         if not pts:
             continue
-        base = n.replace("oracle-", "")
-        style = "--" if n.startswith("oracle-") else "-"
+        base = n.replace("oracle-", "").replace("uniform-", "")
+        style = "--" if n.startswith("oracle-") else ":" if n.startswith("uniform-") else "-"
         marker = "s" if n in ("oidn", "cycles_adaptive", "cycles_adaptive+oidn") else "o"
         ax.plot([p[0] for p in pts], [p[1] for p in pts], style, marker=marker, ms=4,
                 color=STYLE.get(base, None), alpha=0.6 if n.startswith("oracle-") else 1.0, label=n)
@@ -272,6 +272,7 @@ def markdown(res: dict) -> str:
                      f"{_fmt(r.get('speedup'), '.2f')} | {_fmt(r.get('error_correlation'), '.2f')} | "
                      f"{_fmt(r.get('center_fraction'), '.3f')} | {r.get('regions', '-')} | "
                      f"{_fmt(mem.get('bytes_per_pixel'), '.0f')} | {'; '.join(notes)} |")
+        L += estimates_section(d) + gains_section(d) + cost_section(d)
         L += ["", f"![relMSE vs seconds](plot_{s}.png)", "", f"![sheet](sheet_{s}.png)", ""]
 
     sc = res.get("scaling")
@@ -301,27 +302,119 @@ def markdown(res: dict) -> str:
     return "\n".join(L) + "\n"
 
 
+def goal_cell(g, spec=".3g", scale=1.0) -> str:
+    """A goal's figure and verdict for a table: ``0.31 missed``; ``-`` when
+    not measured; ``(not judged)`` after a figure without a verdict."""
+    if not g or g.get("value") is None:
+        return "-"
+    v = _fmt(g["value"] * scale, spec)
+    return v + {True: " met", False: " **missed**", None: " (not judged)"}[g.get("met")]
+
+
+def _loop_runs(d):
+    return [r for r in d.get("runs", []) if r.get("status") == "ok" and "goals" in r]
+
+
+#: the per-run goals the estimates table has its own columns for
+ESTIMATE_COLUMNS = ("error_correlation", "guard_fraction", "negative_share", "brightness_percent",
+                    "beyond_map_percent")
+
+
+def estimates_section(d) -> list:
+    """"Estimates and artefacts": the per-run goals of every run of our loop."""
+    from .targets import GOALS, RUN_GOALS
+    rows = _loop_runs(d)
+    if not rows:
+        return []
+    more = [k for k in RUN_GOALS if k not in ESTIMATE_COLUMNS]  # goals added later: one column each
+    L = ["", "Estimates and artefacts (each goal: the figure and met / missed; see the protocol):", "",
+         "| run | budget | error corr. (>= 0.8) | error corr. 8x8 | guard % (< 5) | negative % (= 0) "
+         "| most negative | brightness % (within 0.5) | beyond map % (< 10) | map CV | uniform share % |"
+         + "".join(f" {k} ({GOALS[k][0]} {GOALS[k][1]}) |" for k in more),
+         "|---|---|---|---|---|---|---|---|---|---|---|" + "---|" * len(more)]
+    for r in rows:
+        g = r["goals"]
+        tail = "".join(f" {goal_cell(g.get(k))} |" for k in more)
+        L.append(f"| {r['name']} | {r['budget']} | {goal_cell(g.get('error_correlation'), '.3f')} | "
+                 f"{_fmt(r.get('error_correlation_block'), '.2f')} | "
+                 f"{goal_cell(g.get('guard_fraction'), '.2f', 100.0)} | "
+                 f"{goal_cell(g.get('negative_share'), '.2f', 100.0)} | {_fmt(r.get('negative_min'), '.3g')} | "
+                 f"{goal_cell(g.get('brightness_percent'), '+.2f')} | "
+                 f"{goal_cell(g.get('beyond_map_percent'), '.1f')} | {_fmt(r.get('map_cv'), '.3f')} | "
+                 f"{_fmt(None if r.get('map_uniform_share') is None else 100 * r['map_uniform_share'], '.0f')} |"
+                 + tail)
+    return L
+
+
+def gains_section(d) -> list:
+    """The relMSE ratios of estimated, oracle and uniform-sampling runs."""
+    comp = d.get("comparisons") or []
+    if not comp:
+        return []
+    L = ["", "Where the samples go (same reconstruction, equal budget; relMSE ratios):", "",
+         "| method | budget | relMSE | oracle | uniform sampling | estimated / oracle (<= 1.15) "
+         "| uniform / oracle (>= 1.3) | uniform / estimated |", "|---|---|---|---|---|---|---|---|"]
+    for c in comp:
+        g = c["goals"]
+        L.append(f"| {c['method']} | {c['budget']} | {_fmt(c['relmse'], '.3e')} | "
+                 f"{_fmt(c['relmse_oracle'], '.3e')} | {_fmt(c['relmse_uniform'], '.3e')} | "
+                 f"{goal_cell(g.get('estimated_over_oracle'), '.2f')} | "
+                 f"{goal_cell(g.get('uniform_over_oracle'), '.2f')} | {_fmt(c['uniform_over_method'], '.2f')} |")
+    return L
+
+
+def cost_section(d) -> list:
+    """Time split (% of the run) and adaptation + reconstruction per
+    megapixel against OIDN's denoise per megapixel of the same budget."""
+    rows = _loop_runs(d)
+    if not rows:
+        return []
+    L = ["", "Time split and cost vs OIDN (same session, same budget):", "",
+         "| run | budget | seconds | render % | adapt % | reconstruct % | overhead % "
+         "| adapt+recon s/MP | OIDN denoise s/MP | ratio (<= 1) | speed-up (>= 1) |",
+         "|---|---|---|---|---|---|---|---|---|---|---|"]
+    for r in rows:
+        sec = r["seconds"]
+        tot = sec["total"] if sec.get("total") else None
+        pct = [_fmt(100 * sec.get(k, 0.0) / tot if tot else None, ".0f")
+               for k in ("render", "adapt", "reconstruct", "overhead")]
+        L.append(f"| {r['name']} | {r['budget']} | {_fmt(tot, '.2f')} | " + " | ".join(pct)
+                 + f" | {_fmt(r.get('adapt_reconstruct_s_per_mp'), '.2f')} | "
+                   f"{_fmt(r.get('oidn_denoise_s_per_mp'), '.2f')} | "
+                   f"{goal_cell(r['goals'].get('oidn_cost_ratio'), '.2f')} | "
+                   f"{goal_cell(r['goals'].get('speedup'), '.2f')} |")
+    return L
+
+
 def _why_section(res) -> list:
     """Measured reasons next to the targets: where the time goes, how good the
     estimated maps are."""
-    L = ["### Where the time goes (our methods, all scenes and budgets)", "",
-         "| method | runs | render | adapt | reconstruct | overhead | mean error corr. |",
-         "|---|---|---|---|---|---|---|"]
+    L = ["### Where the time goes (our loop's runs, all scenes and budgets)", "",
+         "| method | runs | render | adapt | reconstruct | overhead | adapt+recon / OIDN per MP "
+         "(worst) | mean error corr. (8x8) |",
+         "|---|---|---|---|---|---|---|---|"]
     acc = {}
     for d in res["scenes"].values():
         for r in d.get("runs", []):
-            if r.get("status") == "ok" and r["kind"] in ("method", "oracle"):
+            if r.get("status") == "ok" and r["kind"] in ("method", "oracle", "uniform_sampling"):
                 a = acc.setdefault(r["name"], {"n": 0, "render": 0.0, "adapt": 0.0, "reconstruct": 0.0,
-                                               "overhead": 0.0, "total": 0.0, "corr": []})
+                                               "overhead": 0.0, "total": 0.0, "corr": [], "block": [],
+                                               "cost": []})
                 a["n"] += 1
                 for k in ("render", "adapt", "reconstruct", "overhead", "total"):
                     a[k] += r["seconds"].get(k, 0.0)
                 a["corr"].append(r.get("error_correlation"))
+                a["block"].append(r.get("error_correlation_block"))
+                a["cost"].append(r.get("oidn_cost_ratio"))
     for n, a in acc.items():
         tot = a["total"] or 1.0
         corr = [c for c in a["corr"] if c is not None]
+        block = [c for c in a["block"] if c is not None]
+        cost = [c for c in a["cost"] if c is not None]
         L.append(f"| {n} | {a['n']} | " + " | ".join(f"{100 * a[k] / tot:.0f}%" for k in
                                                      ("render", "adapt", "reconstruct", "overhead"))
-                 + f" | {_fmt(float(np.mean(corr)) if corr else None, '.2f')} |")
+                 + f" | {_fmt(max(cost) if cost else None, '.2f')}"
+                 + f" | {_fmt(float(np.mean(corr)) if corr else None, '.2f')}"
+                 + f" ({_fmt(float(np.mean(block)) if block else None, '.2f')}) |")
     L.append("")
     return L

@@ -14,7 +14,10 @@ per scene).  Per scene:
 4. per budget: our methods through the real loop (``AdaptiveRun`` +
    ``CyclesExecutor``, as ``render`` runs them), the oracle runs (the same loop
    with :class:`core.oracle.OracleMethod` choosing where samples go from the true
-   error) and the peers (:mod:`bench.peers`).
+   error), the uniform-sampling runs (:class:`core.oracle.UniformSampling`: the
+   method's reconstruction on the budget rendered uniformly) and the peers
+   (:mod:`bench.peers`); then the figures across runs
+   (:func:`bench.targets.compare_runs`: relMSE ratios, cost vs OIDN, goals).
 
 Then the scaling section: reconstruction seconds and peak traced memory per
 method at several image sizes, next to OIDN's time at the same sizes.
@@ -37,7 +40,7 @@ from ..core.resources import peak_rss_mb
 from . import references as refs
 from .peers import PlainCycles, run_peers
 from .report import err_text, finite, log
-from .targets import evaluate_targets, speedup_curve, summary_rows
+from .targets import BLOCK, compare_runs, evaluate_targets, run_figures, speedup_curve, summary_rows
 
 FEATURES_ALL = ("normal", "albedo", "depth")
 #: the relMSE denominator's epsilon (core.metrics): estimated maps on the true error's scale
@@ -136,6 +139,30 @@ class Session:
             "oracle": "(budgets above the 4-spp initial pass only: below it nothing adapts) the same loop; the sample map is the true per-pixel relative error of the "
                       "current reconstruction against the reference (3x3 pooled) times "
                       "n^(-4/(d+4)) (core/oracle.py)",
+            "uniform_sampling": "uniform-<method> (at the oracle budgets, adaptive methods only): "
+                                "the method's own reconstruction on the whole budget rendered "
+                                "uniformly in the initial pass (ADAPTIVE False, 4 sample subsets; "
+                                "core/oracle.py UniformSampling); gains are relMSE(uniform-m) / "
+                                "relMSE(oracle-m) and / relMSE(m) at equal budget",
+            "error_maps": "error corr. = Pearson correlation of the estimated squared error "
+                          "(MethodResult.error, after the guard) with the true squared error "
+                          "(mean over RGB of (x - r)^2) per pixel; the goal (>= 0.8) judges this "
+                          f"per-pixel figure; '{BLOCK}x{BLOCK}' is the same correlation of both "
+                          f"maps averaged over {BLOCK}x{BLOCK} tiles (the planner's scale), "
+                          "reported beside it",
+            "artefacts": "guard = share of pixels the consistency guard (guard_z) replaced by "
+                         "their sample mean; negative = share of pixels with a channel < 0 where "
+                         "the reference's is >= 0, and the most negative such value; brightness = "
+                         "100 (mean luminance of the result / mean luminance of the sample mean "
+                         "- 1), %",
+            "sampling": "beyond map = samples the planner rendered beyond the method's map "
+                        "(AdaptiveRun.overshoot) / samples rendered, %; map CV = coefficient of "
+                        "variation of the final per-pixel sample count; uniform share = pixels "
+                        "within 5 % of the mean count (100 %: a uniform map)",
+            "oidn_cost": "(adapt + reconstruct seconds) / megapixels of each run of our loop, over "
+                         "the same budget's OIDN denoise seconds per megapixel: the oidn peer's "
+                         "render with the denoiser minus the same render without it, rendered "
+                         "right after it",
             "reference": f"{c['reference_spp']} spp, seed {refs.REFERENCE_SEED} (independent of "
                          "the runs), Tabulated Sobol, same Blender",
             "uniform_curve": "plain Cycles: one full-frame render, the scene's own sampling "
@@ -214,6 +241,13 @@ class Session:
                         rec, pics = self.run_method(scene, vl, m, budget, frame, ref, oracle=True)
                         runs.append(rec)
                         self._keep(keep, budget, rec, pics)
+                if cfg.get("uniform_sampling", True) and budget in cfg["oracle_budgets"] \
+                        and budget > Options().initial_spp:
+                    for m in cfg["methods"]:
+                        if m == "uniform" or not methods_registry.get(m).ADAPTIVE:
+                            continue
+                        rec, _ = self.run_method(scene, vl, m, budget, frame, ref, uniform=True)
+                        runs.append(rec)
                 if cfg["peers"]:
                     ours = [r["seconds"]["total"] for r in runs if r.get("kind") == "method"
                             and r["budget"] == budget and r["status"] == "ok"]
@@ -233,6 +267,7 @@ class Session:
                 if r["name"] == "oidn" and r.get("status") == "ok" and r["budget"] in plain:
                     r["relmse_without_denoiser"] = plain[r["budget"]]["relmse"]
             out["runs"] = runs
+            out["comparisons"] = compare_runs(name, runs, size[0] * size[1] / 1e6)
             out["reference_seconds_this_session"] = t_ref  # ~0 when cached
             out["scene_seconds"] = time.perf_counter() - t_scene
             out["threshold_search"] = [{k: v for k, v in s.items() if k not in ("rgb", "samples_map")}
@@ -278,20 +313,23 @@ class Session:
         return out
 
     # ----------------------------------------------------------- methods
-    def run_method(self, scene, vl, name, budget, frame, ref, oracle=False):
-        """One run of our loop; returns (record, pictures for the sheet)."""
+    def run_method(self, scene, vl, name, budget, frame, ref, oracle=False, uniform=False):
+        """One run of our loop (``oracle``: the true-error map; ``uniform``:
+        the method's reconstruction on uniform sampling); returns (record,
+        pictures for the sheet)."""
         from ..addon.executor import CyclesExecutor
-        from ..core.oracle import OracleMethod
-        label = ("oracle-" if oracle else "") + name
-        rec = {"kind": "oracle" if oracle else "method", "name": label, "method": name,
-               "budget": budget}
+        from ..core.oracle import OracleMethod, UniformSampling
+        kind = "oracle" if oracle else "uniform_sampling" if uniform else "method"
+        label = {"oracle": "oracle-", "uniform_sampling": "uniform-"}.get(kind, "") + name
+        rec = {"kind": kind, "name": label, "method": name, "budget": budget}
         try:
             mod = methods_registry.get(name)
+            wrapped = OracleMethod(mod, ref) if oracle else UniformSampling(mod) if uniform else None
             t0 = time.perf_counter()
             with CyclesExecutor(scene, vl, tuple(mod.PASSES), seed=self.cfg["seed"]) as exe:
                 opts = Options(method=name, spp=float(budget), frame=frame, seed=self.cfg["seed"],
                                max_seconds=self.cfg["run_max_seconds"])
-                run = AdaptiveRun(exe, opts, method=OracleMethod(mod, ref) if oracle else None)
+                run = AdaptiveRun(exe, opts, method=wrapped)
                 for _ in run.steps():
                     pass
                 capped = run.time_limited  # --run-max-seconds stopped the sampling
@@ -314,13 +352,16 @@ class Session:
                         "reconstruct": tm.reconstruct,
                         "overhead": max(0.0, wall - tm.render - tm.adapt - tm.reconstruct)},
             "efficiency": finite(1.0 / (e * wall)) if e > 0 else None,
-            "error_correlation": metrics.error_correlation(err, image, ref),
             "center_fraction": finite(result.info.get("center_fraction")),
             "regions": int(run.tasks_rendered), "iterations": int(run.iteration),
             "nonfinite_pixels": int((~np.isfinite(result.image)).any(axis=-1).sum()),
             "partial": bool(capped),
         })
-        if not oracle:
+        rec.update(run_figures(result.image, result.error, result.info.get("guard_fraction"),
+                               run.buffers.n, run.buffers.color.mean, ref, run.overshoot,
+                               run.samples_rendered))
+        rec.update(self.extra_run_figures(run, result, ref))
+        if kind == "method":
             rec["memory"] = self.reconstruct_memory(mod, run.buffers, run.params)
         log(f"  {label:>14} @ {budget:3d}: relMSE {e:.3e} in {wall:6.2f} s "
             f"(render {tm.render:.2f}, adapt {tm.adapt:.2f}, reconstruct {tm.reconstruct:.2f}), "
@@ -328,6 +369,12 @@ class Session:
         pics = {"image": image, "samples": run.buffers.n.copy(),
                 "estimated": relative_error(err, image[..., :3], eps=RELMSE_EPS)}
         return rec, pics
+
+    @staticmethod
+    def extra_run_figures(run, result, ref) -> dict:
+        """The place for one more per-run figure of our loop's runs (the
+        calibrated variance's calibration ratio); nothing yet."""
+        return {}
 
     @staticmethod
     def reconstruct_memory(mod, buf, params) -> dict:

@@ -29,6 +29,13 @@ For the current reconstruction ``x`` and the reference ``r`` (both (H, W, 3)):
 * samples in proportion to ``g`` by :func:`core.method.allocate` (largest
   remainder, the map sums exactly to the budget).
 
+Uniform sampling, same reconstruction (:class:`UniformSampling`)
+----------------------------------------------------------------
+The other end of the comparison: the wrapped method's reconstruction on the
+budget rendered uniformly, so ``relMSE(uniform-<m>) / relMSE(oracle-<m>)`` is
+what the placement of the samples gained, with the reconstruction held fixed
+(issue goal: >= 1.3x on scenes with localised difficulty).
+
 Hostile input: non-finite reconstructions count as the largest finite error of
 the image (they need samples most), non-finite reference pixels (unknown truth)
 get the mean weight, ``n <= 0`` counts as ``n = 1``; an image and a reference of
@@ -157,3 +164,40 @@ class OracleMethod:
         if state is not None:
             state["oracle_calls"] = int(state.get("oracle_calls", 0)) + 1
         return counts
+
+
+class UniformSampling:
+    """:class:`core.method.Method` around ``base`` that keeps ``base``'s
+    reconstruction but renders the budget uniformly: ``ADAPTIVE`` False (the
+    loop renders the whole budget in its initial pass, as for ``uniform``),
+    ``SAMPLER_USES_RESULT`` False and an even ``sample_map``.
+
+    Choice: ``ADAPTIVE = False`` rather than an adaptive loop with an even
+    map, so the comparison is against uniform sampling as plain Cycles does
+    it (one pass, no region tasks, no planner rounding); the reconstruction
+    then sees ``Options.subsets`` sample groups per pixel (its variance
+    estimate has the initial pass's degrees of freedom everywhere).
+
+    base : a method (``core.methods.get(name)``)
+    name : NAME to report instead of ``"uniform-" + base.NAME``
+    """
+
+    ADAPTIVE = False
+    SAMPLER_USES_RESULT = False
+
+    def __init__(self, base, name: str | None = None):
+        self.base = base
+        self.NAME = name or "uniform-" + base.NAME
+        self.PASSES = tuple(base.PASSES)
+        self.Params = base.Params
+
+    def reconstruct(self, buf, params=None) -> MethodResult:
+        """``base.reconstruct``, unchanged."""
+        return self.base.reconstruct(buf, params)
+
+    def sample_map(self, buf, result: MethodResult | None, budget: int, params=None,
+                   state: dict | None = None) -> np.ndarray:
+        """Even map summing to ``budget`` (:func:`core.method.allocate` of
+        equal weights); the loop asks for one only when a fractional spp
+        leaves samples after the initial pass."""
+        return allocate(np.ones(tuple(buf.shape), np.float64), int(budget))

@@ -2,7 +2,7 @@
 import numpy as np
 import pytest
 
-from cycles_adaptive.core import oracle, uniform, var
+from cycles_adaptive.core import awr, lp, oracle, uniform, var
 from cycles_adaptive.core.buffers import Buffers
 from cycles_adaptive.core.method import Method, MethodResult
 from cycles_adaptive.core.pipeline import AdaptiveRun, Options
@@ -161,3 +161,61 @@ def test_map_gain_follows_the_model_dimension():
         np.testing.assert_allclose(w, e * n ** -p, rtol=1e-14)
     bad = MethodResult(np.zeros((1, 1, 3)), np.zeros((1, 1)), {}, dimension=float("nan"))
     assert oracle.model_dimension(bad) is None and oracle.gain_exponent(bad) == 1.0
+
+
+# ------------------------------------------------------ UniformSampling
+def test_uniform_sampling_declares_the_method_contract():
+    """Same members as the wrapped method except NAME, ADAPTIVE (False: the
+    whole budget in the initial pass) and SAMPLER_USES_RESULT (False)."""
+    for base in (var, awr, lp):
+        m = oracle.UniformSampling(base)
+        assert isinstance(m, Method)
+        assert m.NAME == "uniform-" + base.NAME
+        assert m.PASSES == tuple(base.PASSES) and m.Params is base.Params
+        assert m.ADAPTIVE is False and m.SAMPLER_USES_RESULT is False
+    assert oracle.UniformSampling(var, name="mine").NAME == "mine"
+
+
+def test_uniform_sampling_keeps_the_reconstruction_exactly():
+    ref = _scene(12, 16)
+    rng = np.random.default_rng(3)
+    b = Buffers.empty(12, 16, ())
+    for _ in range(4):
+        b.merge_group(ref * (1.0 + 0.3 * rng.standard_normal(ref.shape)), 2)
+    got = oracle.UniformSampling(awr).reconstruct(b, awr.Params())
+    want = awr.reconstruct(b, awr.Params())
+    np.testing.assert_array_equal(got.image, want.image)
+    np.testing.assert_array_equal(got.error, want.error)
+
+
+@pytest.mark.parametrize("budget", [0, 1, 191, 192, 1000])
+def test_uniform_sampling_map_is_even_and_sums_to_the_budget(budget):
+    b = Buffers.empty(12, 16, ())
+    b.merge_group(np.ones((12, 16, 3)), 1)
+    c = oracle.UniformSampling(var).sample_map(b, None, budget)
+    assert c.dtype == np.int64 and c.sum() == budget
+    assert c.max() - c.min() <= 1
+
+
+def test_uniform_sampling_renders_every_pixel_equally_in_the_loop(fake_executor):
+    """Through the real loop: the budget is spent, every pixel gets the same
+    count (no adaptation), nothing beyond the map, and the image is the
+    wrapped method's reconstruction of those buffers; the adaptive run of the
+    same method on the same scene does adapt (its counts vary)."""
+    h, w = 32, 32
+    truth = np.full((h, w, 3), 0.05)
+    truth[:, 16:] = 1.0
+    opts = dict(method="var", spp=16, initial_spp=4, subsets=4, min_task_size=4, task_cost=0.0)
+    run = AdaptiveRun(fake_executor(truth), Options(**opts), method=oracle.UniformSampling(var))
+    for _ in run.steps():
+        pass
+    n = run.buffers.n
+    assert run.samples_rendered == 16 * h * w
+    assert n.min() == n.max() == 16
+    assert run.overshoot == 0
+    res = run.method.reconstruct(run.buffers, run.params)
+    np.testing.assert_array_equal(res.image, var.reconstruct(run.buffers, run.params).image)
+    adaptive = AdaptiveRun(fake_executor(truth), Options(**opts), method=oracle.OracleMethod(var, truth))
+    for _ in adaptive.steps():
+        pass
+    assert adaptive.buffers.n.std() > 0
