@@ -17,8 +17,14 @@ Conventions (read these before comparing with other libraries)
   ``+1.115087/sqrt(2)`` at its centre, LeGall 5/3 ``-1/sqrt(2)``.  Compared with
   PyWavelets (``bior4.4``, ``bior2.2``, ``haar``) the scale coefficients are
   identical and the detail coefficients equal PyWavelets' times ``-1``
-  (cdf97) or ``+1`` (legall53, haar), after an index shift (PyWavelets'
-  boundary modes keep extra, redundant boundary coefficients).
+  (cdf97) or ``+1`` (legall53, haar) per high-pass filter (so ``W2``, with
+  two, equals PyWavelets' ``cD``), after an index shift (PyWavelets'
+  boundary modes keep extra, redundant boundary coefficients).  PyWavelets
+  has no non-expansive symmetric mode, so its multi-level 'reflect' results
+  differ near the borders; our transform of an axis of ``N`` samples is its
+  ``'periodization'`` of the whole-sample mirror (period ``2N - 2``), which
+  for ``N = 2**m + 1`` holds at every depth (tests/core/test_wavelets.py and
+  the end-to-end reconstruction in tests/core/test_awr.py).
 * **Alignment and boundaries.**  For the odd-length symmetric banks (cdf97,
   legall53) the low-pass output ``s[i]`` is centred on input sample ``2i`` and
   the high-pass output ``d[i]`` on sample ``2i + 1``; the signal is extended by

@@ -413,3 +413,98 @@ def test_variance_propagation_is_non_negative_and_finite(h, w, name):
 def test_unknown_bank_is_rejected():
     with pytest.raises(ValueError):
         wv.get_bank("db4")
+
+
+# ------------------------------------------- multi-level against PyWavelets
+# PyWavelets has no non-expansive whole-sample symmetric mode: 'reflect' keeps
+# (N + L - 1) // 2 coefficients per level and its deeper levels transform those
+# redundant border coefficients, so multi-level results differ from ours near
+# the borders for most sizes.  Our transform of an N-sample axis equals
+# PyWavelets' 'periodization' of the whole-sample mirror (period 2N - 2), and
+# for N = 2^m + 1 the period halves exactly at every level (the level-k grid has
+# 2^(m-k) + 1 scale coefficients, the mirror 2^(m+1-k)), so on those sizes the
+# two agree at every depth, to the digits of PyWavelets' tabulated bior4.4
+# taps (~1e-11; bior2.2 to rounding).  Detail signs: -1 for cdf97 per high-pass
+# filter (module notes), so +1 on the diagonal band W2.
+MIRROR_PYWT = {"cdf97": ("bior4.4", -1.0, 1e-10), "legall53": ("bior2.2", 1.0, 1e-12)}
+
+
+def _mirror(a):
+    """Whole-sample mirror along both axes: (N, M) -> (2N - 2, 2M - 2)."""
+    a = np.concatenate([a, a[-2:0:-1]], axis=0)
+    return np.concatenate([a, a[:, -2:0:-1]], axis=1)
+
+
+def _pywt_wavedec2(x, wavelet, levels):
+    import warnings
+    with warnings.catch_warnings():  # levels beyond dwt_max_level: fine for periodization
+        warnings.simplefilter("ignore")
+        return pywt.wavedec2(_mirror(x), wavelet, mode="periodization", level=levels)
+
+
+def _squared_pywt(name, target):
+    """PyWavelets filter bank of squared taps, each renormalised to sum to
+    ``target`` (None: natural squares), built from PyWavelets' own taps."""
+    w = pywt.Wavelet(name)
+
+    def sq(f):
+        f2 = np.asarray(f) ** 2
+        return f2 if target is None else f2 * (target / f2.sum())
+
+    return pywt.Wavelet(name + "^2", filter_bank=[sq(w.dec_lo), sq(w.dec_hi), sq(w.rec_lo),
+                                                   sq(w.rec_hi)])
+
+
+@pytest.mark.parametrize("name", list(MIRROR_PYWT))
+@pytest.mark.parametrize("shape", [(17, 17), (33, 33), (33, 17), (9, 65)])
+def test_full_depth_analysis_equals_pywavelets_wavedec2(name, shape):
+    """Every level of the multi-level DWT (our recursion, not theirs applied
+    to our scales) against ``pywt.wavedec2``; bands W0 = cV, W1 = cH, W2 = cD."""
+    pw, sign, tol = MIRROR_PYWT[name]
+    x = np.random.default_rng(sum(shape)).normal(size=shape)
+    levels = min(wv.axis_levels(shape[0]), wv.axis_levels(shape[1]))
+    ours = wv.dwt2(x, name, levels=levels)
+    theirs = _pywt_wavedec2(x, pw, levels)
+    h, w = ours.approx.shape
+    np.testing.assert_allclose(ours.approx, theirs[0][:h, :w], atol=tol)
+    for k in range(1, levels + 1):
+        ch, cv, cd = theirs[-k]
+        # one high-pass in W0 and W1, two in W2: signs sign, sign, sign^2
+        for band, ref, sg in zip(ours.details[k - 1], (cv, ch, cd), (sign, sign, sign * sign)):
+            np.testing.assert_allclose(band, sg * ref[:band.shape[0], :band.shape[1]], atol=tol)
+
+
+@pytest.mark.parametrize("name", list(MIRROR_PYWT))
+@pytest.mark.parametrize("target", [None, 2 ** -0.5, 1.05])
+def test_squared_filter_variances_equal_pywavelets_with_squared_taps(name, target):
+    """Eq. 10's Delta^2 = <var, Psi^2> (and Eq. 9's scale variances) by
+    PyWavelets with a filter bank of squared, renormalised taps."""
+    pw, _, tol = MIRROR_PYWT[name]
+    var = np.random.default_rng(5).uniform(0.1, 2.0, (33, 33))
+    ours = wv.dwt2_variance(var, name, lo_sum=target, hi_sum=target)
+    theirs = _pywt_wavedec2(var, _squared_pywt(pw, target), ours.levels)
+    np.testing.assert_allclose(ours.approx, theirs[0][:1, :1], rtol=tol)
+    for k in range(1, ours.levels + 1):
+        ch, cv, cd = theirs[-k]
+        for band, ref in zip(ours.details[k - 1], (cv, ch, cd)):
+            np.testing.assert_allclose(band, ref[:band.shape[0], :band.shape[1]], rtol=tol)
+            assert (band > 0).all()
+
+
+@pytest.mark.parametrize("name", list(MIRROR_PYWT))
+def test_full_depth_synthesis_equals_pywavelets_waverec2(name):
+    """Synthesis of an arbitrary (mirror-symmetric) pyramid: PyWavelets'
+    coefficients of a mirrored image, each band scaled per level, through our
+    idwt2 and through ``pywt.waverec2``."""
+    pw, sign, tol = MIRROR_PYWT[name]
+    x = np.random.default_rng(11).normal(size=(33, 33))
+    levels = wv.max_levels(x.shape)
+    theirs = _pywt_wavedec2(x, pw, levels)
+    gains = np.linspace(0.1, 1.7, levels)  # level k (1 = finest) scaled by gains[k - 1]
+    scaled = [theirs[0]] + [tuple(gains[levels - 1 - i] * b for b in d) for i, d in enumerate(theirs[1:])]
+    want = pywt.waverec2(scaled, pw, mode="periodization")[:33, :33]
+    ours = wv.dwt2(x, name)
+    pyr = wv.Pyramid(ours.approx, [tuple(gains[k] * b for b in d) for k, d in enumerate(ours.details)],
+                     ours.axes)
+    np.testing.assert_allclose(wv.idwt2(pyr, name), want, atol=10 * tol)
+    assert np.abs(wv.idwt2(pyr, name) - x).max() > 0.1  # the scaling did change the image
