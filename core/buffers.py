@@ -109,6 +109,9 @@ class Buffers:
     half : Half or None
         Half A of the disjoint halves (module notes); None when unknown (e.g.
         buffers read from a file), and then :meth:`halves` returns None.
+    exponent : float
+        Convergence exponent of the sequence's error (``core/variance.py``),
+        measured by the loop on its initial pass; 1.0 (i.i.d.) when unknown.
     """
 
     n: np.ndarray
@@ -116,6 +119,7 @@ class Buffers:
     color: Stat
     features: dict = field(default_factory=dict)
     half: Half | None = None
+    exponent: float = 1.0
 
     # ------------------------------------------------------------------ shape
     @property
@@ -167,7 +171,7 @@ class Buffers:
     def copy(self) -> "Buffers":
         return Buffers(self.n.copy(), self.k.copy(), self.color.copy(),
                        {k: v.copy() for k, v in self.features.items()},
-                       None if self.half is None else self.half.copy())
+                       None if self.half is None else self.half.copy(), self.exponent)
 
     # ----------------------------------------------------------------- merging
     def merge_group(self, color, count, features=None, region=None) -> None:
@@ -310,6 +314,14 @@ class Buffers:
         out = np.full(stat.m2.shape, np.inf)
         np.divide(stat.m2, den, out=out, where=ok[..., None])
         return out
+
+    def calibrated_variance(self) -> np.ndarray:
+        """Variance of the pixel mean corrected for the sequence's
+        stratification (``exponent``) and pooled over feature-guided 5x5
+        windows (:func:`core.variance.calibrated_variance_of_mean`); what the
+        methods read.  +inf where no estimate exists, never NaN."""
+        from .variance import calibrated_variance_of_mean
+        return calibrated_variance_of_mean(self, self.exponent)
 
     def feature(self, name: str) -> np.ndarray:
         return self.features[name].mean

@@ -41,11 +41,12 @@ from dataclasses import asdict, dataclass, field, fields
 
 import numpy as np
 
-from . import methods, regions, storage
+from . import maps, methods, regions, storage, variance
 from .buffers import Buffers, Stat
 from .method import Method, allocate, check_ranges, consistency_guard, param, params_from_dict
 
-TOP_UP = 3
+TOP_UP = 3        # planning rounds the last iteration may add to spend what rounding left
+MAX_BEYOND_MAP = 0.1  # most samples an iteration's plan may add beyond the map (share of its samples)
 MAX_EXACT_TASKS = 64  # most renders a pixel-exact fallback plan may take
 
 
@@ -84,12 +85,14 @@ class Options:
     task_cost: float = param(regions.DEFAULT_TASK_COST, "fixed cost of one region render in "
                              "pixel-samples; higher merges more regions (fewer renders, samples less "
                              "adaptive)", 0.0, None, label="Region Cost")
-    #: Our safeguard, not in the papers: per-pixel error estimates from a few
-    #: sample subsets are heavy-tailed (fireflies, near-black pixels under
-    #: relative error), and a map proportional to them pours most of an
-    #: iteration into a few pixels; the cap spreads the excess over the other
-    #: pixels in proportion to the map.
-    max_pixel_share: float = param(2.0, "most samples a pixel may get in one iteration, as a "
+    #: Our safeguard, not in the papers: per-pixel estimates from a few sample
+    #: groups are heavy-tailed, so the map is pooled by confidence and to the
+    #: planner's blocks (core/maps.py) before planning
+    pool_maps: bool = param(True, "pool each sample map over 3x3 pixels weighted by how many "
+                            "sample groups each pixel's estimate rests on, then over the region "
+                            "blocks, before planning; off follows the method's per-pixel map",
+                            label="Pool Sample Maps")
+    max_pixel_share: float = param(0.0, "most samples a pixel may get in one iteration, as a "
                                    "multiple of the iteration's mean (0: no cap); lower spreads "
                                    "samples more evenly, higher follows the method's map to its peaks",
                                    0.0, None, label="Max Pixel Share", soft_max=64.0)
@@ -288,42 +291,20 @@ class AdaptiveRun:
                                    f"{int((extra.n > 0).sum())} pixels from the previous frame")
             self._save_checkpoint()
         tol = max(1, int(0.009 * self.budget))  # the total lands within 1 % of the budget
-        # up to TOP_UP extra iterations spend what rounding to rectangles left over
-        while self.iteration < opts.iterations + TOP_UP and self.remaining > tol:
-            if self._time_up():
-                break
-            if not self.method.ADAPTIVE:
-                budget = self.remaining
-            else:
+        while self.iteration < opts.iterations and self.remaining > tol and not self._time_up():
+            last = self.iteration == opts.iterations - 1 or not self.method.ADAPTIVE
+            entry = {"iteration": self.iteration + 1, "tasks": 0, "samples": 0, "overshoot": 0}
+            # the last iteration may take up to TOP_UP more planning rounds to
+            # spend what rounding to rectangles left over (each a new map)
+            for _ in range(1 + (TOP_UP if last else 0)):
+                if self.remaining <= tol or self._time_up():
+                    break
                 left = max(1, opts.iterations - self.iteration)
-                budget = self.remaining if left <= 1 else int(self.remaining / left)
-            overshoot_before = self.overshoot
-            work = Work(lambda b=budget: self._adapt(b),
-                        f"iteration {self.iteration + 1}: adapting ({self.method.NAME})")
-            yield Progress("adapt", self.iteration, self._fraction(), work.label, work=work)
-            tasks, covered, counts = work.result()
-            if not tasks:
-                break
-            before = self.next_index
-            tasks, self.next_index = regions.assign_offsets(tasks, self.next_index)
-            yield Progress("plan", self.iteration, self._fraction(),
-                           f"iteration {self.iteration + 1}: {len(tasks)} region tasks, "
-                           f"{int(covered.sum())} samples", 0, len(tasks))
-            done = []
-            for i, task in enumerate(self._render_tasks(tasks)):
-                done.append(task)
-                yield Progress("render", self.iteration, self._fraction(),
-                               f"iteration {self.iteration + 1}: task {i + 1}/{len(tasks)}",
-                               i + 1, len(tasks))
-            if len(done) < len(tasks):  # stopped by the time limit: keep what was rendered
-                self.next_index = regions.assign_offsets(done, before)[1]
-                covered = np.zeros_like(covered)
-                for t in done:
-                    covered[t.y0:t.y1, t.x0:t.x1] += t.samples
-                self.overshoot = overshoot_before + int(np.maximum(covered - counts, 0).sum())
-            self.history.append({"iteration": self.iteration + 1, "tasks": len(done),
-                                 "samples": int(covered.sum()),
-                                 "overshoot": int(covered.sum() - np.asarray(counts).sum())})
+                budget = self.remaining if last else int(self.remaining / left)
+                rendered = yield from self._round(budget, entry)
+                if not rendered:
+                    break
+            self.history.append(entry)
             self.iteration += 1
             self._save_checkpoint()
             yield Progress("checkpoint", self.iteration, self._fraction(),
@@ -334,19 +315,81 @@ class AdaptiveRun:
                            f"time limit of {opts.max_seconds:g} s reached after {self.elapsed():.2f} s")
         yield Progress("done", self.iteration, self._fraction(), "sampling done")
 
+    def _round(self, budget: int, entry: dict):
+        """One planning round of the current iteration: adapt (a :class:`Work`),
+        plan, render, merge; adds its figures to the iteration's ``entry``.
+        Returns the number of tasks rendered (0: nothing to plan)."""
+        overshoot_before = self.overshoot
+        work = Work(lambda: self._adapt(budget),
+                    f"iteration {self.iteration + 1}: adapting ({self.method.NAME})")
+        yield Progress("adapt", self.iteration, self._fraction(), work.label, work=work)
+        tasks, covered, counts = work.result()
+        if not tasks:
+            return 0
+        before = self.next_index
+        tasks, self.next_index = regions.assign_offsets(tasks, self.next_index)
+        yield Progress("plan", self.iteration, self._fraction(),
+                       f"iteration {self.iteration + 1}: {len(tasks)} region tasks, "
+                       f"{int(covered.sum())} samples", 0, len(tasks))
+        done = []
+        for i, task in enumerate(self._render_tasks(tasks)):
+            done.append(task)
+            yield Progress("render", self.iteration, self._fraction(),
+                           f"iteration {self.iteration + 1}: task {i + 1}/{len(tasks)}",
+                           i + 1, len(tasks))
+        if len(done) < len(tasks):  # stopped by the time limit: keep what was rendered
+            self.next_index = regions.assign_offsets(done, before)[1]
+            covered = np.zeros_like(covered)
+            for t in done:
+                covered[t.y0:t.y1, t.x0:t.x1] += t.samples
+            self.overshoot = overshoot_before + int(np.maximum(covered - counts, 0).sum())
+        entry["tasks"] += len(done)
+        entry["samples"] += int(covered.sum())
+        entry["overshoot"] += self.overshoot - overshoot_before
+        return len(done)
+
     def _initial_pass(self):
         tasks = subset_tasks(self.width, self.height, self.initial_spp, self.subsets, self.options.frame)
         self.buffers = Buffers.empty(self.height, self.width, self.feature_names)
+        meter = variance.ExponentMeter()
         last = tasks[0]
         for s, task in enumerate(tasks):
             if s and self._time_up():  # one subset at least, so there is an image
                 break
-            self._render_task(task)
+            t0 = time.perf_counter()
+            color, feats = self.executor.render(task)
+            self._count_render(time.perf_counter() - t0)
+            self._merge(task, color, feats)
+            meter.add(color, task.samples)
             last = task
             yield Progress("initial", 0, self._fraction(),
                            f"initial pass: subset {s + 1}/{len(tasks)} ({task.samples} spp)",
                            s + 1, len(tasks))
         self.next_index[:] = last.offset + last.samples
+        # the sequence's stratification, measured once on the equal subsets (core/variance.py)
+        self.buffers.exponent = meter.exponent(self.buffers)
+
+    def _shaped(self, counts: np.ndarray) -> np.ndarray:
+        """A method's map as the planner gets it: pooled by confidence and to
+        the planner's blocks (``Options.pool_maps``, :mod:`core.maps`), then
+        capped (``Options.max_pixel_share``)."""
+        counts = np.asarray(counts, np.int64)
+        if self.options.pool_maps and counts.sum() > 0:
+            counts = maps.confidence_pool(counts, self.buffers.k - 1.0)
+            counts = maps.pool_to_blocks(counts, self.options.min_task_size)
+        return self._capped(counts)
+
+    def _planned(self, counts: np.ndarray):
+        """The cheapest plan at ``Options.task_cost`` whose samples beyond the
+        map stay within ``MAX_BEYOND_MAP`` of its samples: the task cost is
+        quartered until they do (at 0 the plan is exact at block scale)."""
+        cost = float(self.options.task_cost)
+        while True:
+            plan = regions.plan(counts, frame=self.options.frame, min_size=self.options.min_task_size,
+                                task_cost=cost)
+            if cost <= 0 or plan.overshoot <= MAX_BEYOND_MAP * plan.covered.sum():
+                return plan
+            cost = cost / 4.0 if cost > 4.0 else 0.0
 
     def _capped(self, counts: np.ndarray) -> np.ndarray:
         """Apply ``Options.max_pixel_share`` to a map (same total when possible)."""
@@ -431,10 +474,9 @@ class AdaptiveRun:
         best = None
         for _ in range(6):
             state = copy.deepcopy(self.method_state)
-            counts = self._capped(np.asarray(self.method.sample_map(self.buffers, result, max(ask, 0),
-                                                                    self.params, state), np.int64))
-            plan = regions.plan(counts, frame=self.options.frame, min_size=self.options.min_task_size,
-                                task_cost=self.options.task_cost)
+            counts = self._shaped(self.method.sample_map(self.buffers, result, max(ask, 0),
+                                                         self.params, state))
+            plan = self._planned(counts)
             cov = int(plan.covered.sum())
             if cov <= limit and (best is None or cov > best[1].covered.sum()):
                 best = (counts, plan, state)
@@ -484,7 +526,8 @@ class AdaptiveRun:
             return
         meta = {"options": _options_key(self.options), "method": self.method.NAME,
                 "iteration": self.iteration, "tasks_rendered": self.tasks_rendered,
-                "overshoot": self.overshoot, "timing": asdict(self.timing), "history": self.history}
+                "overshoot": self.overshoot, "timing": asdict(self.timing), "history": self.history,
+                "exponent": self.buffers.exponent}
         storage.save_checkpoint(self.checkpoint_path, self.buffers,
                                 {"next_index": self.next_index, "reused": self.reused},
                                 meta, self.method_state)
@@ -499,6 +542,7 @@ class AdaptiveRun:
         if b.n.shape != (self.height, self.width):
             raise ValueError(f"{path}: checkpoint is {b.n.shape}, the render is "
                              f"{(self.height, self.width)}")
+        b.exponent = float(meta.get("exponent", 1.0))
         self.buffers = b
         self.next_index = arrays["next_index"]
         self.reused = arrays.get("reused", np.zeros((self.height, self.width)))

@@ -25,9 +25,10 @@ class Params:
 
 
 def reconstruct(buf: Buffers, params: Params | None = None) -> MethodResult:
-    """The sample mean; error = variance of the mean averaged over RGB
-    (0 where no variance estimate exists, k < 2)."""
-    return denoise(buf.color.mean, buf.variance_of_mean())
+    """The sample mean; error = the calibrated variance of the mean
+    (:meth:`Buffers.calibrated_variance`) averaged over RGB (0 where no
+    variance estimate exists)."""
+    return denoise(buf.color.mean, buf.calibrated_variance())
 
 
 def denoise(color, color_var, features=None, feature_var=None, n=None, params=None) -> MethodResult:

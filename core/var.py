@@ -289,14 +289,15 @@ def reconstruct(buf: Buffers, params: Params | None = None) -> MethodResult:
 
     image : (H, W, 3) sample mean; non-finite values are replaced by 0
         (counted in ``info['nonfinite_pixels']``).
-    error : (H, W) variance of the mean (``M2 / ((k - 1) n)``) averaged over
-        RGB.  Where it is unknown (k < 2, n = 0, non-finite statistics) the
+    error : (H, W) calibrated variance of the mean
+        (:meth:`Buffers.calibrated_variance`: stratification-corrected, pooled
+        over feature-guided 5x5 windows) averaged over RGB.  Where it is unknown (k < 2, n = 0, non-finite statistics) the
         error is the larger of the worst known error in the image and the
         pixel's mean squared value (a 100 % relative error), so it is finite
         and conservative; ``info['pixels_without_variance']`` counts them.
     Zero-variance input comes back unchanged with error 0.
     """
-    return _result(buf.color.mean, buf.variance_of_mean(), buf.n)
+    return _result(buf.color.mean, buf.calibrated_variance(), buf.n)
 
 
 def denoise(color, color_var, features=None, feature_var=None, n=None, params=None) -> MethodResult:

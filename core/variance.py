@@ -59,6 +59,7 @@ __all__ = [
     "calibrated_variance_and_dof",
     "calibrated_variance_of_mean",
     "calibration_ratio",
+    "ExponentMeter",
     "expected_m2_factor",
     "feature_weights",
     "group_spread",
@@ -163,6 +164,54 @@ def _invert_ratio(rho, k: int):
         hi = np.where(below, hi, mid)
     out = np.clip(0.5 * (lo + hi), *EXPONENT_RANGE)
     return float(out) if out.ndim == 0 else out
+
+
+class ExponentMeter:
+    """:func:`stratification_exponent` of a render's consecutive, equal-size
+    subsets, fed one subset at a time so the loop keeps two frame-sized arrays
+    instead of every subset: the running sum and sum of squares of the pair
+    means, and the current pair's first subset.  ``S_k`` comes from the
+    merged Buffers' ``M2`` (``M2 = m sum_i (mu_i - mu)^2`` for equal groups of
+    ``m`` samples), ``S_k/2 = sum_j p_j^2 - (k/2) mu^2``.
+    """
+
+    def __init__(self):
+        self.k = 0
+        self.size = None
+        self.equal = True
+        self._first = None
+        self._sq = None
+
+    def add(self, color, samples: int) -> None:
+        """One subset's (H, W, 3) mean of ``samples`` samples, in sequence order."""
+        c = np.asarray(color, np.float64)[..., :3]
+        if self.size is None:
+            self.size = int(samples)
+        self.equal &= int(samples) == self.size
+        if self.k % 2 == 0:
+            self._first = c.copy()
+        else:
+            p = 0.5 * (self._first + c)
+            self._sq = p * p if self._sq is None else self._sq + p * p
+            self._first = None
+        self.k += 1
+
+    def exponent(self, buf) -> float:
+        """beta for the Buffers the subsets were merged into (1.0 when the
+        subsets were too few, odd in number, unequal, or show no spread)."""
+        k = self.k
+        if k < 4 or k % 2 or not self.equal or self._sq is None:
+            return 1.0
+        mu = np.asarray(buf.color.mean, np.float64)
+        with np.errstate(invalid="ignore", over="ignore"):
+            w = 1.0 / (np.where(np.isfinite(mu), mu, 0.0) ** 2 + 0.01)
+            s_k = buf.color.m2 / self.size * w
+            s_pairs = (self._sq - (k / 2.0) * mu * mu) * w
+        s_k = float(np.sum(s_k[np.isfinite(s_k)]))
+        s_pairs = float(np.sum(s_pairs[np.isfinite(s_pairs)]))
+        if not (s_k > 0 and s_pairs > 0):
+            return 1.0
+        return _invert_ratio(s_k / s_pairs, k)
 
 
 def expected_m2_factor(n, k, exponent: float = 1.0) -> np.ndarray:

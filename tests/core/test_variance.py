@@ -343,3 +343,44 @@ def test_local_exponent_map_follows_regions():
     assert np.all(np.isfinite(est)) and np.all(est > 0)
     assert np.all(np.isfinite(V.stratification_exponent([g[:, :, :] for g in groups[:4]], radius=2)))
     assert np.all(V.stratification_exponent([np.zeros(shape)] * 4, radius=3) == 1.0)
+
+
+def test_exponent_meter_streams_the_batch_exponent():
+    """The loop's streaming meter (two arrays) gives the batch
+    stratification_exponent of the same equal subsets."""
+    from core.buffers import Buffers
+    from core.variance import ExponentMeter, stratification_exponent
+    rng = np.random.default_rng(5)
+    h, w, k = 12, 10, 8
+    truth = rng.random((h, w, 3)) + 0.1
+    # nested-covariance subsets: pair sums noisier than i.i.d. would predict less
+    base = rng.normal(0, 0.3, (k // 2, h, w, 3))
+    subs = [truth + base[i // 2] * (1 if i % 2 else -1) * 0.5 + rng.normal(0, 0.1, (h, w, 3))
+            for i in range(k)]
+    buf = Buffers.from_subsets(subs, [2] * k)
+    meter = ExponentMeter()
+    for s in subs:
+        meter.add(s, 2)
+    assert meter.exponent(buf) == pytest.approx(stratification_exponent(subs, buf.color.mean), abs=1e-9)
+    odd = ExponentMeter()
+    for s, m in zip(subs[:4], [2, 2, 3, 2]):
+        odd.add(s, m)
+    assert odd.exponent(buf) == 1.0  # unequal subsets: no correction
+
+
+def test_the_loop_measures_the_exponent_and_checkpoints_it(tmp_path):
+    from core.pipeline import AdaptiveRun, Options
+    from conftest import FakeExecutor
+    truth = np.full((8, 8, 3), 0.5)
+    run = AdaptiveRun(FakeExecutor(truth), Options(method="var", spp=8, initial_spp=4, subsets=4),
+                      checkpoint=str(tmp_path / "c.npz"))
+    steps = run.steps()
+    for st in steps:
+        if st.stage == "checkpoint":
+            break
+    steps.close()
+    beta = run.buffers.exponent
+    assert np.isfinite(beta) and 0.5 <= beta <= 3.0
+    again = AdaptiveRun(FakeExecutor(truth), Options(method="var", spp=8, initial_spp=4, subsets=4))
+    again.load_checkpoint(str(tmp_path / "c.npz"))
+    assert again.buffers.exponent == beta

@@ -1,0 +1,112 @@
+"""Sample maps the planner keeps: pooling by confidence and to the planner's scale.
+
+A method's sample map (new samples per pixel) follows per-pixel estimates made
+from a few sample groups: after the initial pass each pixel's variance has
+``k - 1 = 3`` degrees of freedom, so the map is heavy-tailed noise around the
+true need (a pixel that drew one firefly asks for hundreds of samples, its
+equally noisy neighbours for none).  Two steps between the method and the
+planner (:func:`core.regions.plan`) make the map one that region renders can
+follow and that is worth following:
+
+1. :func:`confidence_pool`: each pixel's count becomes an inverse-variance
+   weighted mean of its 3x3 neighbourhood, the weights following the degrees of
+   freedom ``nu = k - 1`` of each estimate: a pixel estimated from few groups
+   among well-sampled neighbours gets a bounded share (their value), one with
+   many groups keeps its own.  It replaces the former fixed cap of
+   twice the iteration's mean, which flattened the maps the planner then
+   rounded up to whole frames.
+2. :func:`pool_to_blocks`: the mean over the planner's aligned ``min_size``
+   blocks, so the planner's rectangles cover whole blocks of equal count and
+   the samples it adds beyond the map come only from merging blocks to save
+   renders.
+
+Both keep the map's total (largest-remainder rounding, :func:`core.method.allocate`).
+Measurements (tools/planner_curve.py): docs/notes/planner.md.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from .method import allocate
+
+
+def confidence_pool(counts: np.ndarray, dof: np.ndarray, radius: int = 1) -> np.ndarray:
+    """Confidence-weighted (2r+1)^2 neighbourhood mean of a sample map, same total.
+
+    Each neighbour ``q`` of pixel ``p`` is an estimate of ``p``'s need with its
+    own noise (variance ~ 1/nu_q) plus the difference between the two pixels,
+    taken as uncertain as ``p``'s own estimate (~ 1/nu_p); inverse-variance
+    weights are then ``w_pp = nu_p`` and ``w_pq = nu_p nu_q / (nu_p + nu_q)``.
+    So a pixel never trusts a neighbour more than itself, a low-dof pixel among
+    well-sampled ones takes their value, and a well-sampled one keeps its own.
+
+    counts : (H, W) non-negative map; dof : (H, W) degrees of freedom of each
+    pixel's estimate (``k - 1``; <= 0 or non-finite: none, the pixel takes the
+    plain mean of its neighbourhood).  Returns (H, W) int64 summing to
+    ``counts.sum()`` (the pooled map is rescaled to the total, then rounded).
+    """
+    c = np.asarray(counts, np.float64)
+    c = np.where(np.isfinite(c) & (c > 0), c, 0.0)
+    total = int(round(c.sum()))
+    if total <= 0 or c.size == 0:
+        return np.zeros(c.shape, np.int64)
+    nu = np.asarray(dof, np.float64)
+    nu = np.where(np.isfinite(nu) & (nu > 0), nu, 0.0)
+    h, w = c.shape
+    r = int(radius)
+    cp = np.pad(c, r)
+    nup = np.pad(nu, r)
+    inside = np.pad(np.ones((h, w)), r)
+    num = np.zeros((h, w))
+    den = np.zeros((h, w))
+    plain = np.zeros((h, w))
+    area = np.zeros((h, w))
+    for dy in range(2 * r + 1):
+        for dx in range(2 * r + 1):
+            cq, nq, iq = cp[dy:dy + h, dx:dx + w], nup[dy:dy + h, dx:dx + w], inside[dy:dy + h, dx:dx + w]
+            if dy == r and dx == r:
+                wq = nu
+            else:
+                s = nu + nq
+                wq = np.divide(nu * nq, s, out=np.zeros((h, w)), where=s > 0)
+            num += wq * cq
+            den += wq
+            plain += cq * iq
+            area += iq
+    pooled = np.where(den > 0, num / np.where(den > 0, den, 1.0), plain / np.maximum(area, 1.0))
+    return allocate(pooled, total)
+
+
+def pool_to_blocks(counts: np.ndarray, size: int) -> np.ndarray:
+    """Mean of a sample map over aligned ``size`` x ``size`` blocks (edge
+    blocks are smaller), one whole count per block: each block gets the floor
+    of its mean, then the blocks with the largest remainders one more, in that
+    order, while the total stays within ``counts.sum()``; what is then left
+    (less than one block's area) goes as single samples to the pixels of the
+    blocks with the largest remainders.  Same total; ``size <= 1`` returns the
+    map.  (H, W) int64."""
+    c = np.asarray(counts, np.int64)
+    size = int(size)
+    if size <= 1 or c.size == 0:
+        return c.copy()
+    h, w = c.shape
+    gh, gw = -(-h // size), -(-w // size)
+    pad = np.zeros((gh * size, gw * size), np.int64)
+    pad[:h, :w] = c
+    ones = np.zeros_like(pad)
+    ones[:h, :w] = 1
+    s = pad.reshape(gh, size, gw, size).sum(axis=(1, 3)).ravel()
+    a = ones.reshape(gh, size, gw, size).sum(axis=(1, 3)).ravel()
+    base = s // a
+    left = int(c.sum() - (base * a).sum())
+    frac = s / a - base
+    order = np.argsort(-frac, kind="stable")
+    take = order[(np.cumsum(a[order]) <= left) & (frac[order] > 0)]
+    base[take] += 1
+    left -= int(a[take].sum())
+    up = lambda g: np.repeat(np.repeat(g.reshape(gh, gw), size, axis=0), size, axis=1)[:h, :w]
+    out = up(base).astype(np.int64)
+    if left > 0:  # less than a block's worth: single samples where the remainders are largest
+        rest = np.where(up(frac > 0) & (up(base) == up(s // a)), up(frac), 0.0)
+        out += allocate(rest, left)
+    return out
