@@ -188,24 +188,70 @@ class RingFits:
         ``beta(k(r))``, the least-squares model of the window k(r) (Eq. 3).
     xi_acc : (R+1, N, C) float64
         Accumulated prediction error ``xi_acc(k(r))`` (Eq. 4); entry 0 is the
-        caller's ``xi0``, entry 1 the leave-one-out sum of Eq. 7, entries r >= 2
-        add Eq. 5's ring errors.
+        caller's ``xi0``, entry ``start`` the leave-one-out sum of Eq. 7 over
+        k(start), entries r > start add Eq. 5's ring errors; +inf for
+        ``1 <= r < start`` (windows too small to determine the model: no
+        candidates of Eq. 2).
     count : (R+1, N) float64
         Number of (weight-1) pixels inside k(r): the normaliser of Eq. 4.
     gram : (R+1, N, p, p) float64 or None
         ``delta I + X^T X`` of k(r) (the inverse of RLS's ``P(k(r))``), kept
         only when asked (for a temporal extension that continues the RLS).
+    start : (N,) int64
+        The ring where the recursion starts (:func:`start_rings`).
+    dof : (R+1, N) float64
+        Effective parameter count ``tr((delta I + X^T X)^-1 X^T X)`` of k(r)
+        (p for a determined least-squares fit).
+    svar : (R+1, N, C) float64
+        ``sum_{i in k(r)} w_i s_i``, the window sum of the subtracted variances.
+    svar2 : (R+1, N, C) float64
+        ``sum_{i in k(r)} w_i s_i^2`` (for the standard error of Eq. 4's sum).
     """
 
     beta: np.ndarray
     xi_acc: np.ndarray
     count: np.ndarray
     gram: np.ndarray | None = None
+    start: np.ndarray | None = None
+    dof: np.ndarray | None = None
+    svar: np.ndarray | None = None
+    svar2: np.ndarray | None = None
+
+
+#: the error recursion starts where a window holds this many pixels per unknown
+START_MARGIN = 2.0
+
+
+def start_rings(count: np.ndarray, p: int, margin: float = START_MARGIN) -> np.ndarray:
+    """The ring r_s >= 1 where the error recursion of Eq. 4 starts with Eq. 7.
+
+    Sec. 7 of Moon et al. 2015 starts at k(1) = 9 pixels, but with p = d + 1
+    unknowns (up to 10 here) the 9-pixel fit is under- or exactly determined,
+    every hat value ``z_i^T P z_i`` is near 1 and the leave-one-out error of
+    Eq. 7 explodes, and Eq. 4 adds it to every larger window.  Choice: start
+    at the first ring whose window holds at least ``margin * p`` usable pixels
+    (margin 2: the mean hat value ``p / count`` is then <= 1/2, so Eq. 7's
+    ``1 / (1 - h)^2`` amplifies the mean residual at most ~4x; with p <= 4 the
+    paper's k(1) is kept).  Where no ring reaches it (tiny images, holes) the
+    largest ring R starts, provided it has more pixels than unknowns;
+    otherwise ``R + 1`` (no candidate window beyond k(0)).
+
+    count : (R+1, N) usable pixels of k(r).  Returns (N,) int64.
+    """
+    r1 = count.shape[0]
+    if r1 < 2:
+        return np.full(count.shape[1], r1, np.int64)
+    ok = count[1:] >= margin * p
+    first = 1 + np.argmax(ok, axis=0)
+    determined = count[-1] > p
+    return np.where(ok.any(axis=0), first, np.where(determined, r1 - 1, r1)).astype(np.int64)
+
 
 
 def ring_fits(z: np.ndarray, y: np.ndarray, w: np.ndarray, s: np.ndarray,
               beta0: np.ndarray, xi0: np.ndarray, radius: int, delta: float = 1e-3,
-              keep_gram: bool = False, work: dict | None = None) -> RingFits:
+              keep_gram: bool = False, work: dict | None = None,
+              margin: float = START_MARGIN) -> RingFits:
     """Recursive least squares (Eq. 3) and recursive prediction error (Eq. 4, 5, 7)
     of Moon et al. 2015, ring by ring, for N centres at once.
 
@@ -244,14 +290,18 @@ def ring_fits(z: np.ndarray, y: np.ndarray, w: np.ndarray, s: np.ndarray,
 
     Returns
     -------
+    margin : float
+        Usable pixels per unknown at which the recursion starts (:func:`start_rings`).
+
     RingFits
         ``beta(k(r))`` solves ``(delta I + X^T X) beta = delta beta(0) + X^T Y``
         over the pixels of k(r), which is what the recursion of Eq. 3 reaches
-        after the last pixel of ring r; ``xi_acc(k(1))`` is Eq. 7,
-        ``sum_i w_i [((beta(k(1))^T z_i - y_i) / (1 - z_i^T P(k(1)) z_i))^2 - s_i]``
-        over the 9 pixels of k(1); for r >= 2
+        after the last pixel of ring r; at the start ring r_s
+        (:func:`start_rings`; the paper's r_s = 1) ``xi_acc(k(r_s))`` is Eq. 7,
+        ``sum_i w_i [((beta(k(r_s))^T z_i - y_i) / (1 - z_i^T P(k(r_s)) z_i))^2 - s_i]``
+        over the pixels of k(r_s); for r > r_s
         ``xi_acc(k(r)) = xi_acc(k(r-1)) + sum_{i in ring r} w_i [(beta(k(r-1))^T z_i - y_i)^2 - s_i]``
-        (Eq. 4-5).
+        (Eq. 4-5); +inf for ``1 <= r < r_s``.
 
     Notes
     -----
@@ -270,15 +320,49 @@ def ring_fits(z: np.ndarray, y: np.ndarray, w: np.ndarray, s: np.ndarray,
     columns = _columns(z)
     mom = _ring_moments(columns, y, w, beta0, starts, p, work or {})
     beta, count, gram, low = _ring_models(mom, p, delta, keep_gram)
-    xi_acc = np.empty((radius + 1, n, c))
+    start = start_rings(count, p, margin)
+    linv = _inverse_factor(low)                                         # L^-1 of every k(r)
+    dof = p - delta * (linv * linv).sum(axis=(0, 1)).reshape(radius + 1, n)
+    svar = np.empty((radius + 1, n, c))                                 # ring sums, then cumulated
+    svar2 = np.empty((radius + 1, n, c))
+    for r in range(radius + 1):
+        sr, wr = s[:, :, starts[r]:starts[r + 1]], w[:, None, starts[r]:starts[r + 1]]
+        np.einsum("nck,nck->nc", sr, np.broadcast_to(wr, sr.shape), out=svar[r])
+        np.einsum("nck,nck,nck->nc", sr, sr, np.broadcast_to(wr, sr.shape), out=svar2[r])
+    np.cumsum(svar, axis=0, out=svar)
+    np.cumsum(svar2, axis=0, out=svar2)
+    xi_acc = np.full((radius + 1, n, c), np.inf)
     xi_acc[0] = xi0
     if radius >= 1:
-        # P(k(1)) z_i uses the Cholesky factors of k(1) from the solve above
-        xi_acc[1] = _loo_error(columns, beta[1], low[:, :, n:2 * n], y, w, s, beta0)
-    if radius >= 2:
-        xi_acc[2:] = xi_acc[1] + np.cumsum(_ring_errors(mom, beta[1:-1], s, w, starts, p), axis=0)
+        live = start <= radius
+        rs = np.minimum(start, radius)
+        idx = np.arange(n)
+        # P(k(r_s)) z_i uses the Cholesky factors of k(r_s) from the solve above
+        loo = _loo_error(columns, beta[rs, idx], low[:, :, rs * n + idx], y, w, s, beta0, starts[rs + 1])
+        # Eq. 5's ring sums, cumulated over rings 2..r (0 for r <= 1)
+        acc = np.zeros((radius + 1, n, c))
+        if radius >= 2:
+            np.cumsum(_ring_errors(mom, beta[1:-1], s, w, starts, p), axis=0, out=acc[2:])
+        rings = np.arange(radius + 1)[:, None]
+        use = ((rings >= rs[None, :]) & (rings >= 1) & live[None, :])[1:, :, None]
+        xi_acc[1:] = np.where(use, (loo - acc[rs, idx])[None] + acc[1:], np.inf)
     beta[:, :, 0, :] += beta0
-    return RingFits(beta, xi_acc, count, gram)
+    return RingFits(beta, xi_acc, count, gram, start, dof, svar, svar2)
+
+
+def _inverse_factor(low: np.ndarray) -> np.ndarray:
+    """``L^-1`` of a stack of Cholesky factors (p, p, M) (:func:`_cholesky_t`
+    layout) by forward substitution of the identity: ``tr(A^-1) = ||L^-1||_F^2``
+    and ``A^-1 = L^-T L^-1``.  Returns (p, p, M), row i of L^-1 in ``[i]``."""
+    p, _, m = low.shape
+    inv = np.zeros((p, p, m))
+    for i in range(p):
+        row = np.zeros((p, m))
+        row[i] = 1.0
+        if i:
+            row -= (low[i, :i, None, :] * inv[:i]).sum(0)
+        inv[i] = row / low[i, i]
+    return inv
 
 
 def _ring_moments(columns, y, w, beta0, starts, p, work: dict) -> np.ndarray:
@@ -333,27 +417,35 @@ def _ring_models(mom: np.ndarray, p: int, delta: float, keep_gram: bool):
 
 
 def _loo_error(columns, beta1: np.ndarray, low1: np.ndarray, y: np.ndarray, w: np.ndarray,
-               s: np.ndarray, beta0: np.ndarray) -> np.ndarray:
-    """Eq. 7 of Moon et al. 2015: ``xi_acc(k(1))``, the closed-form
-    leave-one-out error (Allen 1974) over the 9 pixels of k(1),
-    ``sum_i w_i [((beta(k(1))^T z_i - y_i) / (1 - z_i^T P(k(1)) z_i))^2 - s_i]``.
+               s: np.ndarray, beta0: np.ndarray, size=9) -> np.ndarray:
+    """Eq. 7 of Moon et al. 2015: ``xi_acc(k(r_s))``, the closed-form
+    leave-one-out error (Allen 1974) over the pixels of the start window
+    k(r_s) (the paper's k(1), 9 pixels),
+    ``sum_i w_i [((beta(k(r_s))^T z_i - y_i) / (1 - z_i^T P(k(r_s)) z_i))^2 - s_i]``.
+    With P = (delta I + X^T X)^-1 this is the exact leave-one-out residual of
+    the regularised fit (the ridge form of Allen's identity).
 
     columns : ``columns(lo, hi, out)`` of the design (see :class:`Design`).
-    beta1 : (N, p, C) model of k(1) for the centred observations ``y - beta0``.
-    low1 : (p, p, N) Cholesky factors of ``P(k(1))^-1 = delta I + X^T X``
+    beta1 : (N, p, C) model of k(r_s) for the centred observations ``y - beta0``.
+    low1 : (p, p, N) Cholesky factors of ``P(k(r_s))^-1 = delta I + X^T X``
         (:func:`_cholesky_t` layout).
-    y, w, s, beta0 : as in :func:`ring_fits`.  Returns (N, C).
+    y, w, s, beta0 : as in :func:`ring_fits`.
+    size : int or (N,) int, the pixel count ``(2 r_s + 1)^2`` of each centre's
+        start window (a prefix of the ring-ordered pixels).  Returns (N, C).
     """
     n, p = beta1.shape[:2]
-    z9 = columns(0, 9, np.empty((n, p, 9)))
-    pz = _cho_solve_t(low1, np.moveaxis(z9, 0, -1).copy())             # P(k(1)) z_i
+    size = np.broadcast_to(np.asarray(size, np.int64), (n,))
+    kmax = int(size.max()) if n else 9
+    zk = columns(0, kmax, np.empty((n, p, kmax)))
+    pz = _cho_solve_t(low1, np.moveaxis(zk, 0, -1).copy())             # P(k(r_s)) z_i
     pz = np.moveaxis(pz, -1, 0)
-    h = (z9 * pz).sum(axis=1)                                           # (N, 9)
-    res = np.matmul(np.swapaxes(beta1, 1, 2), z9) - (y[:, :, :9] - beta0[:, :, None])
+    h = (zk * pz).sum(axis=1)                                           # (N, kmax)
+    res = np.matmul(np.swapaxes(beta1, 1, 2), zk) - (y[:, :, :kmax] - beta0[:, :, None])
     res /= np.maximum(1.0 - h, 1e-12)[:, None, :]
     res *= res
-    res -= s[:, :, :9]
-    res *= w[:, None, :9]
+    res -= s[:, :, :kmax]
+    inside = w[:, :kmax] * (np.arange(kmax)[None, :] < size[:, None])
+    res *= inside[:, None, :]
     return res.sum(axis=2)
 
 

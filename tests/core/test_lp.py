@@ -181,35 +181,62 @@ def test_first_model_reproduces_the_centre_pixel():
     assert np.all(fits.beta[0][:, 1:, :] == 0.0)
 
 
-def test_prediction_error_recursion_matches_explicit_computation():
-    """Eq. 7 (closed-form leave-one-out) and Eq. 4-5 (ring test errors) against
-    refitting explicitly, with and without the variance correction."""
-    radius, p, delta = 4, 4, 1e-3
-    z, y, w, s, beta0, xi0 = random_rings(5, radius, p, seed=7)
+@pytest.mark.parametrize("p, margin", [(4, 2.0), (4, 1.0), (8, 2.0), (2, 2.0)])
+def test_prediction_error_recursion_matches_explicit_computation(p, margin):
+    """Eq. 7 (closed-form leave-one-out at the start window k(r_s)) and Eq. 4-5
+    (ring test errors) against refitting explicitly, with and without the
+    variance correction; windows before the start are no candidates (+inf)."""
+    radius, delta = 4, 1e-3
+    z, y, w, s, beta0, xi0 = random_rings(5, radius, p, seed=7 + p)
     starts = ring_layout(radius)[3]
     for corr in (s, np.zeros_like(s)):
-        fits = ring_fits(z, y, w, corr, beta0, xi0, radius, delta)
+        fits = ring_fits(z, y, w, corr, beta0, xi0, radius, delta, margin=margin)
         for n in range(z.shape[0]):
             zr, yr, sr = z[n].T, y[n].T, corr[n].T
             assert np.allclose(fits.xi_acc[0, n], xi0[n])
-            # Eq. 7: leave each of the 9 pixels of k(1) out, refit (with the prior), test it
+            # the start: the first ring with >= margin * p usable pixels
+            counts = [w[n, :starts[r + 1]].sum() for r in range(radius + 1)]
+            rs = next(r for r in range(1, radius + 1) if counts[r] >= margin * p)
+            assert fits.start[n] == rs
+            assert np.all(np.isinf(fits.xi_acc[1:rs, n]))
+            # Eq. 7: leave each pixel of k(r_s) out, refit (with the prior), test it
+            ks = starts[rs + 1]
             loo = np.zeros(y.shape[1])
-            for i in range(9):
+            for i in range(ks):
                 if w[n, i] == 0:
                     continue
-                keep = (w[n, :9] > 0) & (np.arange(9) != i)
-                b = batch_ls(zr[:9][keep], yr[:9][keep], beta0[n], delta)
+                keep = (w[n, :ks] > 0) & (np.arange(ks) != i)
+                b = batch_ls(zr[:ks][keep], yr[:ks][keep], beta0[n], delta)
                 loo += (zr[i] @ b - yr[i]) ** 2 - sr[i]
-            assert np.allclose(fits.xi_acc[1, n], loo, rtol=1e-8, atol=1e-10)
+            assert np.allclose(fits.xi_acc[rs, n], loo, rtol=1e-8, atol=1e-10)
             # Eq. 4-5: model of k(r-1) tested on the 8r new pixels
             acc = loo
-            for r in range(2, radius + 1):
+            for r in range(rs + 1, radius + 1):
                 lo, hi = starts[r], starts[r + 1]
                 keep = w[n, :lo] > 0
                 b = batch_ls(zr[:lo][keep], yr[:lo][keep], beta0[n], delta)
                 ring = w[n, lo:hi] > 0
                 acc = acc + (((zr[lo:hi] @ b - yr[lo:hi]) ** 2 - sr[lo:hi]) * ring[:, None]).sum(0)
                 assert np.allclose(fits.xi_acc[r, n], acc, rtol=1e-8, atol=1e-9), (n, r)
+            # the effective parameter count tr((delta I + X^T X)^-1 X^T X) and the variance sums
+            for r in range(radius + 1):
+                keep = w[n, :starts[r + 1]] > 0
+                x = zr[:starts[r + 1]][keep]
+                a = x.T @ x
+                dof = np.trace(np.linalg.solve(delta * np.eye(p) + a, a))
+                assert fits.dof[r, n] == pytest.approx(dof, rel=1e-9, abs=1e-9)
+                assert np.allclose(fits.svar[r, n], sr[:starts[r + 1]][keep].sum(0), rtol=1e-12)
+                assert np.allclose(fits.svar2[r, n], (sr[:starts[r + 1]][keep] ** 2).sum(0), rtol=1e-12)
+
+
+def test_start_ring_needs_margin_times_the_unknowns():
+    """start_rings: first ring with count >= margin p; else R if determined; else R + 1."""
+    from core.lp_solve import start_rings
+    count = np.array([[1, 1, 1, 1], [9, 9, 4, 3], [25, 25, 9, 5], [49, 30, 16, 6]], float)
+    assert start_rings(count, 4).tolist() == [1, 1, 2, 3]
+    assert start_rings(count, 10).tolist() == [2, 2, 3, 4]
+    assert start_rings(count, 3, margin=1.0).tolist() == [1, 1, 1, 1]
+    assert start_rings(count[:1], 3).tolist() == [1, 1, 1, 1]      # R = 0: only k(0)
 
 
 # ------------------------------------------------------------------------- features
@@ -261,13 +288,22 @@ def test_box_sum_matches_explicit_window_sums():
 
 # ------------------------------------------------------------------ reconstruction
 def test_linear_truth_windows_grow_to_the_maximum_and_error_drops():
+    """Truth linear in the features, variances estimated from 4 subsets: the
+    centres' windows are k(R) in >= 80 % of the channels (measured 47 / 54)
+    and none has 1 <= r <= 3 (the old selection: bimodal, [108, 98, 3, 1,
+    1, 2, 3, 2, 11, 134]); a few r = 0 stay where the 3-dof variance estimates
+    around the centre came out low (a calibrated variance removes those; with
+    the known variance: tests/core/test_lp_windows.py)."""
     h, w = 48, 48
     feats = scene_features(h, w, seed=2)
     truth = 0.7 * feats["albedo"] + 0.05 * feats["depth"]           # linear in the features
     buf = make_buffers(truth, feats, sigma=0.3, seed=3)
     res = lp.reconstruct(buf)
     fit = res.fit
-    assert fit.radius.mean() > 0.75 * 9
+    r = fit.center_radius
+    assert np.mean(r == 9) >= 0.8
+    assert not np.any((r >= 1) & (r <= 3))
+    assert np.mean(r == 0) <= 0.15
     assert mse(res.image, truth) < 0.05 * mse(buf.color.mean, truth)
     assert 0.0 < res.info["center_fraction"] < 0.2
     assert res.info["center_fraction"] == pytest.approx(len(fit.centers) / (h * w))
@@ -280,12 +316,14 @@ def test_windows_shrink_at_an_edge_the_features_do_not_explain():
     truth = (0.6 * feats["albedo"]) * np.where(xx < 32, 1.0, 0.15)  # a shadow edge at x = 32
     buf = make_buffers(truth, feats, sigma=0.1, seed=5)
     fit = lp.reconstruct(buf).fit
-    near = fit.radius[:, 30:34].mean()
-    far = np.concatenate([fit.radius[:, :16], fit.radius[:, 48:]], axis=1).mean()
-    assert near < 0.6 * far
-    # centres are denser near the edge
     cx = fit.centers[:, 1]
-    assert np.mean(np.abs(cx - 31.5) < 4) > 2 * 8 / w
+    dist = np.abs(cx - 31.5)                                   # to the edge, between columns 31 and 32
+    near, far = dist < 4, dist > 12
+    # a window that crosses the edge is biased: centres near it keep theirs inside
+    assert np.mean(fit.center_radius[near] < 4) >= 0.95
+    assert np.mean(fit.center_radius[far] == 9) >= 0.8
+    # centres are denser near the edge
+    assert np.mean(near) > 2 * 8 / w
 
 
 def test_step_in_a_feature_is_kept_sharp():
@@ -310,8 +348,9 @@ def test_zero_variance_input_is_returned_unchanged():
     img = rng.random((h, w, 3)) * 5 - 1                 # arbitrary, not linear, negatives
     buf = Buffers.from_subsets([img] * 3, [4] * 3, [feats] * 3)
     res = lp.reconstruct(buf)
-    assert np.array_equal(res.image, img)
-    assert np.all(res.error == 0.0)
+    # every pixel keeps k(0); overlapping larger models get weight ~xi0 / xi = 0
+    np.testing.assert_allclose(res.image, img, rtol=1e-12, atol=1e-12)
+    assert np.all(res.error >= 0.0) and np.all(res.error < 1e-20)
 
 
 def test_estimated_error_correlates_with_true_error():
@@ -331,8 +370,11 @@ def test_estimated_error_correlates_with_true_error():
 
 
 def test_accumulation_matches_explicit_per_centre_predictions():
-    """Eq. 1 predictions of every centre over its window, averaged, and the
-    per-pixel error and Sec. 5.2 reduction, recomputed centre by centre."""
+    """Eq. 1 predictions of every centre over its window (bounded below by
+    min(0, window minimum)), blended with the weights
+    ``((r + 1 - d) / (r + 1))^2 / xi``, and the per-pixel error, Sec. 5.2
+    reduction and sampling map (``rho = Delta xi / (f^2 + epsilon)``),
+    recomputed centre by centre, pixel by pixel, from the models alone."""
     h, w = 17, 13
     feats = scene_features(h, w, seed=12)
     truth = 0.5 * feats["albedo"] + 0.2 * feats["normal"][..., 2:3]
@@ -345,23 +387,37 @@ def test_accumulation_matches_explicit_per_centre_predictions():
     pred = np.zeros((h, w, 3))
     err = np.zeros((h, w, 3))
     dxi = np.zeros((h, w, 3))
+    wsum = np.zeros((h, w, 3))
     cnt = np.zeros((h, w, 3))
     m = fit.models
+    big = params.radius
     for i, (cy, cx) in enumerate(fit.centers):
+        window = color[max(cy - big, 0):cy + big + 1, max(cx - big, 0):cx + big + 1]
+        low = np.minimum(window.reshape(-1, 3).min(axis=0), 0.0)
         for c in range(3):
             r = fit.center_radius[i, c]
+            xi = fit.center_error[i, c]
             for yy in range(max(cy - r, 0), min(cy + r + 1, h)):
                 for xx in range(max(cx - r, 0), min(cx + r + 1, w)):
                     x = np.concatenate([[yy - cy, xx - cx], raw[yy, xx] - raw[cy, cx]])
                     zv = np.concatenate([[1.0], x @ m["transform"][i]])
-                    pred[yy, xx, c] += m["beta"][i, c] @ zv
-                    err[yy, xx, c] += fit.center_error[i, c]
-                    dxi[yy, xx, c] += fit.center_error[i, c] * buf.n[yy, xx] ** (-4.0 / (fit.center_rank[i] + 4))
+                    d = max(abs(yy - cy), abs(xx - cx))
+                    wt = ((r + 1.0 - d) / (r + 1.0)) ** 2 / min(max(xi, 1e-30), 1e30)
+                    pred[yy, xx, c] += wt * max(m["beta"][i, c] @ zv, low[c])
+                    err[yy, xx, c] += wt * xi
+                    dxi[yy, xx, c] += wt * xi * buf.n[yy, xx] ** (-4.0 / (fit.center_rank[i] + 4))
+                    wsum[yy, xx, c] += wt
                     cnt[yy, xx, c] += 1
     assert np.all(cnt > 0)
-    assert np.allclose(fit.image, pred / cnt, rtol=1e-9, atol=1e-12)
-    assert np.allclose(fit.error, np.maximum(err / cnt, 0).mean(-1), rtol=1e-9, atol=1e-15)
-    assert np.allclose(fit.delta_error, np.maximum(dxi / cnt, 0), rtol=1e-9, atol=1e-15)
+    assert np.allclose(fit.image, pred / wsum, rtol=1e-9, atol=1e-12)
+    # (the weighted error sums are float32: 1e-6)
+    assert np.allclose(fit.error, (err / wsum).mean(-1), rtol=1e-6, atol=1e-15)
+    assert np.allclose(fit.delta_error, dxi / wsum, rtol=1e-6, atol=1e-15)
+    # Sec. 5.2's map from these independent sums
+    f = pred / wsum
+    rho = (dxi / wsum / (f * f + params.epsilon)).mean(axis=-1)
+    res = lp.reconstruct(buf, params)
+    assert np.array_equal(lp.sample_map(buf, res, 4 * h * w, params, {}), allocate(rho, 4 * h * w))
     # P is the RLS inverse covariance: symmetric positive definite
     pm = m["P"]
     assert np.allclose(pm, np.swapaxes(pm, -1, -2))
@@ -376,7 +432,7 @@ def test_chunking_does_not_change_the_result():
     a = lp.reconstruct(buf, lp.Params(chunk=16))
     b = lp.reconstruct(buf, lp.Params(chunk=4096))
     assert np.allclose(a.image, b.image, rtol=1e-12, atol=1e-12)
-    assert np.allclose(a.error, b.error, rtol=1e-12, atol=1e-15)
+    assert np.allclose(a.error, b.error, rtol=1e-6, atol=1e-15)         # float32 error sums
 
 
 def test_automatic_chunk_follows_the_image_size():
@@ -416,7 +472,7 @@ def test_chunk_size_does_not_change_the_result_at_any_rank():
         assert np.array_equal(a.center_rank, b.center_rank)
         assert np.allclose(a.center_error, b.center_error, rtol=1e-9, atol=1e-15)
         assert np.allclose(a.image, b.image, rtol=1e-9, atol=1e-12)
-        assert np.allclose(a.error, b.error, rtol=1e-9, atol=1e-15)
+        assert np.allclose(a.error, b.error, rtol=1e-6, atol=1e-15)
         for key in ("beta", "P", "transform"):
             assert np.allclose(a.models[key], b.models[key], rtol=1e-9, atol=1e-12), key
 
@@ -482,7 +538,7 @@ def test_firefly_stays_local_and_finite():
     assert far.sum() > 0.5 * h * w
     # equal up to the summation order of overlapping predictions
     assert np.allclose(a.image[far], b.image[far], rtol=1e-12, atol=1e-12)
-    assert np.allclose(a.error[far], b.error[far], rtol=1e-12, atol=1e-15)
+    assert np.allclose(a.error[far], b.error[far], rtol=1e-6, atol=1e-15)      # float32 error sums
 
 
 @pytest.mark.parametrize("value", [0.0, 0.37])
@@ -554,9 +610,8 @@ def test_sample_map_is_sec_5_2_and_sums_to_the_budget():
     counts = lp.sample_map(buf, res, 4 * h * w, params, state)
     assert counts.dtype == np.int64 and counts.shape == (h, w)
     assert counts.sum() == 4 * h * w and counts.min() >= 0
-    fit = res.fit
-    rho = (fit.delta_error / (fit.image ** 2 + params.epsilon)).mean(axis=-1)
-    assert np.array_equal(counts, allocate(rho, 4 * h * w))
+    # (the map itself is recomputed independently in
+    # test_accumulation_matches_explicit_per_centre_predictions)
     assert state["iterations"] == 1
     # without the stored fit, sample_map recomputes it
     from core.method import MethodResult

@@ -1,0 +1,262 @@
+"""LP's window choice (Eq. 2-7 of Moon et al. 2015) against scenes with a known
+truth and a known noise variance, and LP's artefacts: negative output, seams
+at window borders."""
+import numpy as np
+import pytest
+
+from core import lp
+from core.lp_solve import ring_layout
+from test_lp import scene_features
+
+
+# ----------------------------------------------------------------------------- helpers
+def noisy(truth, var, seed):
+    rng = np.random.default_rng(seed)
+    return truth + rng.normal(size=truth.shape) * np.sqrt(var)
+
+
+def chirp_scene(seed, h=64, w=96, sigma=0.3, spp=16):
+    """Textured albedo times an illumination the features do not explain: flat
+    on the left third, then a chirp whose frequency grows to the right, so the
+    oracle radius spans the whole range 1 .. R (as in the paper's Fig. 4)."""
+    feats = scene_features(h, w, seed=seed)
+    yy, xx = np.mgrid[0:h, 0:w].astype(float)
+    phase = np.where(xx < 32, 0.0, ((xx - 32) / 64.0) ** 2 * 64.0 / 3.0)
+    light = 1.0 + 0.6 * np.sin(phase) * np.cos(yy / 9.0)
+    truth = 0.7 * feats["albedo"] * light[..., None]
+    var = np.full_like(truth, sigma ** 2 / spp)
+    return truth, noisy(truth, var, seed + 100), var, feats
+
+
+def centre_grid(h, w, radius, step):
+    cy, cx = np.mgrid[radius:h - radius:step, radius:w - radius:step]
+    return cy.ravel(), cx.ravel()
+
+
+def window_truth(truth, index, radius):
+    """(N, 3, K) truth at the window pixels of ``fit_centres``' index."""
+    pad = np.pad(truth, ((radius, radius), (radius, radius), (0, 0)))
+    return np.swapaxes(np.take(np.moveaxis(pad, -1, 0).reshape(3, -1), index, axis=1), 0, 1)
+
+
+def oracle_radii(res, truth, var0, radius):
+    """Eq. 2 with the truth: for every candidate window, the mean squared error
+    of its model's predictions against the truth over the window's pixels
+    (k(0): the known variance of the pixel mean); argmin, ties to the larger."""
+    starts = ring_layout(radius)[3]
+    err = (res["pred_rings"] - window_truth(truth, res["index"], radius)[None]) ** 2
+    w = res["w"][None, :, None, :]
+    true = np.stack([(err[r] * w[0])[..., :starts[r + 1]].sum(-1) /
+                     np.maximum(w[0][..., :starts[r + 1]].sum(-1), 1) for r in range(radius + 1)])
+    true[0] = var0
+    return lp.select_windows(true)
+
+
+# ------------------------------------------------------------------- window choice
+@pytest.mark.parametrize("seed", [0, 1])
+def test_chosen_windows_follow_the_oracle_windows(seed):
+    """Log-radius correlation between the chosen and the oracle windows (Eq. 2
+    evaluated with the truth, the paper's Fig. 4 reference) on a scene whose
+    oracle radius spans 1 .. 9, with the known variance.  Measured 0.605-0.645
+    (seeds 0-3); the previous selection (Eq. 7 at k(1), first minimum) gave
+    0.554-0.579 on the same scenes and models and chose r <= 2 for 24-25 % of
+    the centres whose oracle radius is >= 7 (now <= 0.1 %).  The paper's Fig. 4
+    reports 0.87 on Toasters against an 8K-spp reference, where the radii are
+    mostly flat-region versus edge; here the oracle varies continuously and
+    the estimate's noise (~ s sqrt(2 / |k|)) is of the order of the error
+    differences between neighbouring radii.  Threshold 0.58: above what the
+    old selection reaches on these seeds (docs/notes/lp.md)."""
+    truth, color, var, feats = chirp_scene(seed)
+    params = lp.Params()
+    frame = lp._pack(color, var, feats, None, None, params)
+    cy, cx = centre_grid(*truth.shape[:2], params.radius, 2)
+    res = lp.fit_centres(frame, frame.flat(cy, cx), params, all_rings=True)
+    oracle = oracle_radii(res, truth, var[0, 0, 0], params.radius)
+    chosen = res["r_opt"]
+    assert len(np.unique(oracle)) >= 8                       # the scene spans the radii
+    rho = np.corrcoef(np.log(2 * chosen + 1.0).ravel(), np.log(2 * oracle + 1.0).ravel())[0, 1]
+    assert rho >= 0.58
+    # no cluster of tiny windows where the oracle wants large ones
+    big = oracle >= 7
+    assert np.mean(chosen[big] <= 2) < 0.02
+
+
+def test_linear_truth_picks_the_largest_window_for_nearly_every_centre():
+    """Truth linear in the features: every window is unbiased and the largest
+    has the least variance, so (nearly) every centre takes k(R); with the known
+    variance no centre falls to r <= 1 (the old selection: radii bimodal, a
+    third at r <= 1)."""
+    h, w = 48, 48
+    feats = scene_features(h, w, seed=2)
+    truth = 0.7 * feats["albedo"] + 0.05 * feats["depth"]
+    var = np.full_like(truth, 0.3 ** 2 / 16)
+    params = lp.Params()
+    frame = lp._pack(noisy(truth, var, 3), var, feats, None, None, params)
+    cy, cx = centre_grid(h, w, 0, 3)                          # every 3rd pixel, borders included
+    res = lp.fit_centres(frame, frame.flat(cy, cx), params)
+    r = res["r_opt"]
+    assert np.mean(r == params.radius) >= 0.9              # measured 0.94 (the rest at image borders)
+    assert np.mean(r >= params.radius - 1) >= 0.92
+    assert np.all(r >= 2)
+
+
+def test_select_windows_ties_go_to_the_larger_window():
+    inf = np.inf
+    xi = np.moveaxis(np.array([[0.5, inf, 0.3, 0.3, 0.3],       # exact tie r = 2..4: largest
+                               [0.5, inf, 0.5, 0.6, 0.7],       # k(0) equal to the best: larger wins
+                               [0.5, inf, 0.1, 0.1, 0.2],
+                               [0.2, inf, 0.3, 0.4, 0.3]]), 0, 1)  # k(0) strictly better
+    assert lp.select_windows(xi).tolist() == [4, 2, 3, 0]
+    # one standard error: 0.35 is within 0.3 + 0.06 of the minimum, 0.4 is not
+    xi2 = np.array([[0.5], [inf], [0.3], [0.35], [0.4]])
+    se = np.array([[0.0], [0.0], [0.06], [0.0], [0.0]])
+    assert lp.select_windows(xi2, se).tolist() == [3]
+    assert lp.select_windows(xi2).tolist() == [2]
+    # nothing finite beyond k(0): k(0); nothing finite at all: k(0)
+    assert lp.select_windows(np.array([[0.1], [inf], [inf]])).tolist() == [0]
+    assert lp.select_windows(np.array([[inf], [inf], [inf]])).tolist() == [0]
+    # k(0) unknown (+inf) but a window finite: the window
+    assert lp.select_windows(np.array([[inf], [inf], [0.2]])).tolist() == [2]
+
+
+def test_estimates_are_bounded_by_the_models_variance_and_the_map_is_never_zero():
+    """xi_c(k(r)) = max(Eq. 4, s_mean dof / |k(r)|): the bound is the variance
+    of the model of k(r), here computed independently (dof = trace of the
+    regularised hat matrix, explicit matrices); the estimate equals Eq. 4
+    where that is larger; and the error map is > 0 wherever the noise is
+    (never clipped to 0)."""
+    from core.lp_solve import ring_fits
+    from test_lp import random_rings
+    radius, p, delta = 4, 5, 1e-3
+    z, y, w, s, beta0, xi0 = random_rings(6, radius, p, seed=3)
+    y = 3.0 + 0.05 * np.random.default_rng(4).normal(size=y.shape)      # nearly constant: Eq. 4 < 0 often
+    s = np.full_like(s, 0.05 ** 2 * 1.3)                                # a variance a bit too large
+    beta0 = y[:, :, 0].copy()
+    fits = ring_fits(z, y, w, s, beta0, xi0, radius, delta)
+    xi = np.maximum(lp._estimated_errors(fits, xi0), lp._error_floor(fits, xi0))
+    starts = ring_layout(radius)[3]
+    below = 0
+    for n in range(z.shape[0]):
+        for r in range(int(fits.start[n]), radius + 1):
+            keep = w[n, :starts[r + 1]] > 0
+            x = z[n].T[:starts[r + 1]][keep]
+            hat = x @ np.linalg.solve(delta * np.eye(p) + x.T @ x, x.T)
+            k = keep.sum()
+            floor = s[n, :, 0] * np.trace(hat) / k                       # s_mean dof / |k(r)|
+            raw = fits.xi_acc[r, n] / k
+            assert np.allclose(xi[r, n], np.maximum(np.maximum(raw, 0.0), floor), rtol=1e-9, atol=1e-15)
+            below += int((raw < floor).sum())
+    assert below > 0                                                     # the bound was needed
+    h, w_ = 40, 40
+    feats = scene_features(h, w_, seed=5)
+    truth = 0.7 * feats["albedo"] + 0.05 * feats["depth"]
+    var = np.full_like(truth, 0.01)
+    fit = lp.fit(noisy(truth, var, 6), var, feats, None, None, lp.Params(radius=4))
+    assert np.all(fit.error > 0) and np.all(np.isfinite(fit.error))
+
+
+# ----------------------------------------------------------------------- artefacts
+def sparse_fireflies(h=48, w=64, seed=0, shape=0.05):
+    """A dark textured wall brightening to the right, rendered with sparse,
+    heavy-tailed non-negative samples (gamma, shape 0.05: most samples ~0, a
+    few bright ones), as indirect light is."""
+    from core.buffers import Buffers
+    feats = scene_features(h, w, seed=seed, texture=True)
+    xx = np.arange(w)[None, :, None]
+    truth = (0.05 + 0.5 * np.maximum(xx - 32, 0) / 32.0) * feats["albedo"]
+    rng = np.random.default_rng(seed)
+    subsets = [np.mean(rng.gamma(shape, truth / shape, (4,) + truth.shape), axis=0) for _ in range(4)]
+    return truth, Buffers.from_subsets(subsets, [4] * 4, [feats] * 4)
+
+
+def test_non_negative_input_gives_non_negative_output(monkeypatch):
+    """Linear models fitted to sparse fireflies extrapolate below 0 (the scene
+    is hostile: without the lower bound the output goes negative); with it the
+    output is >= 0 everywhere and the error against the truth does not grow."""
+    truth, buf = sparse_fireflies()
+    assert buf.color.mean.min() >= 0
+    res = lp.reconstruct(buf)
+    assert res.image.min() >= 0.0
+    monkeypatch.setattr(lp, "_lower_bound", lambda y, w: np.full(y.shape[:2], -np.inf))
+    raw = lp.reconstruct(buf)
+    assert raw.image.min() < 0.0
+    err = lambda a: float(((a - truth) ** 2).mean())
+    assert err(res.image) <= err(raw.image)
+
+
+def test_lower_bound_is_zero_or_the_windows_own_minimum():
+    y = np.array([[[0.2, 0.0, 3.0], [-0.5, 1.0, 2.0], [-9.0, 1.0, 2.0]]])      # (1, 3, 3)
+    y = np.concatenate([y, y], axis=0)
+    w2 = np.array([[1.0, 1.0, 0.0], [0.0, 0.0, 0.0]])
+    got = lp._lower_bound(y, w2)
+    assert got[0].tolist() == [0.0, -0.5, -9.0]                            # pixel 2 unusable
+    assert got[1].tolist() == [0.0, 0.0, 0.0]                              # nothing usable: 0
+
+
+def test_negative_input_is_not_clamped_above_the_data():
+    """Where the input itself is negative (not radiance), predictions are only
+    bounded at the window's own minimum."""
+    h, w = 24, 24
+    feats = scene_features(h, w, seed=3)
+    truth = 0.5 * feats["albedo"] - 1.0
+    var = np.full_like(truth, 0.01)
+    res = lp.denoise(noisy(truth, var, 4), var, feats)
+    assert res.image.min() < -0.5
+    assert float(((res.image - truth) ** 2).mean()) < 0.01
+
+
+def seam_scene(h=64, w=96, sigma=0.02, seed=0):
+    """A smooth gradient the position model fits only locally (constant
+    albedo, normal, depth), with a re-rendered region (4x the samples) on the
+    left half."""
+    yy, xx = np.mgrid[0:h, 0:w].astype(float)
+    truth = (0.3 + 0.5 * (xx / w) ** 2 + 0.1 * np.sin(yy / 9.0))[..., None] * np.array([1.0, 0.8, 0.6])
+    feats = {"albedo": np.full((h, w, 3), 0.5), "normal": np.broadcast_to([0.0, 0.0, 1.0], (h, w, 3)).copy(),
+             "depth": np.full((h, w, 1), 3.0)}
+    var = np.full((h, w, 3), sigma ** 2)
+    var[:, : w // 2] /= 4.0
+    return truth, noisy(truth, var, seed), var, feats
+
+
+def border_excess(fit, truth):
+    """Mean |second difference of (output - truth)| along x at pixels next to a
+    window border (some model's window starts or ends there) over the mean
+    elsewhere."""
+    out = fit.image
+    h, w = out.shape[:2]
+    d2 = np.abs(np.diff(out - truth, 2, axis=1)).mean(-1)                # centred at column i + 1
+    edge = np.zeros((h, w + 1), bool)                                    # border between j - 1 and j
+    for (cy, cx), r in zip(fit.centers, fit.center_radius.max(axis=1)):
+        y0, y1 = max(cy - r, 0), min(cy + r + 1, h)
+        for j in (cx - r, cx + r + 1):
+            if 0 < j < w:
+                edge[y0:y1, j] = True
+    near = edge[:, 1:w - 1] | edge[:, 2:w]
+    return float(d2[near].mean() / d2[~near].mean())
+
+
+@pytest.mark.parametrize("clean", [False, True])
+def test_window_borders_leave_smaller_steps_than_the_plain_average(monkeypatch, clean):
+    """Sec. 5.1's plain average of overlapping models steps wherever a window
+    starts or ends (the rectangular seams on smooth walls).  The tapered,
+    error-weighted blend cuts the excess roughness at window borders to less
+    than 0.6x the plain average's (measured 0.44-0.47x), on a noisy gradient
+    with a re-rendered region and on its noise-free version (same claimed
+    variance, so the same windows)."""
+    truth, color, var, feats = seam_scene()
+    inp = truth if clean else color
+    params = lp.Params()
+    tapered = border_excess(lp.fit(inp, var, feats, None, None, params), truth)
+    monkeypatch.setattr(lp, "blend_weights", lambda d, r, xi: np.ones_like(xi))
+    plain = border_excess(lp.fit(inp, var, feats, None, None, params), truth)
+    assert plain > 1.5                                       # the scene shows the seams
+    assert tapered < 0.6 * plain
+
+
+def test_blend_weights_taper_to_zero_outside_the_window():
+    d = np.arange(0, 11, dtype=float)
+    w = lp.blend_weights(d, np.full_like(d, 9.0), np.full_like(d, 2.0))
+    assert w[0] == pytest.approx(0.5)                        # 1 / xi at the centre
+    assert np.all(np.diff(w) < 0) and w[10] == 0.0
+    assert w[9] == pytest.approx(0.5 / 100)                  # (1 / (r + 1))^2 / xi at the border
+    assert np.all(np.isfinite(lp.blend_weights(d, d * 0 + 9, np.array([0.0] * 5 + [np.inf] * 6))))
