@@ -28,9 +28,10 @@ Pipeline (section / equation of the paper -> function):
    ``window_inputs``, ``window_error_terms`` (``hat_bias_variance``,
    ``block_error``).
 6. Bandwidth selection, Eq. 10, 12 -> ``choose_bandwidth``,
-   ``predict_at_bandwidth``, ``error_at_bandwidth``.
+   ``predict_at_bandwidth`` (``clamp_to_support``), ``error_at_bandwidth``.
 7. Accumulation of the window predictions and their combination, Eq. 13 ->
-   ``accumulate_predictions``, ``accumulate_variances``, ``combine_models``;
+   ``accumulate_predictions``, ``accumulate_variances``, ``blend_input``
+   (``combine_models`` with a fixed input weight);
    one iteration over all models -> ``regression_pass``; the T iterations of
    Eq. 11-12 -> ``fit_models``; the driver -> ``rhf_reconstruct``.
 
@@ -46,10 +47,17 @@ Choices where the paper is silent or ambiguous (details in each function):
   Var_{t-1}(s, k) its per-k variance maps merged with the same weights; only
   the error estimate and k_opt are iterated, the fit always targets Y.
   ``bias_noise_correction`` (off) subtracts the pilot's noise from bias^2.
-* tau thresholds each pixel's gradient; r_m models go to pixels that no
-  model weights >= ``coverage_weight`` (``select_centers``, ``place_models``).
-* Eq. 13 also averages in each pixel's own input at ``input_weight`` (0.02),
-  so weakly weighted pixels do not trust extrapolated predictions.
+* tau thresholds each pixel's gradient; a detailed patch gets r_s windows on
+  its detail pixels (Fig. 4), not one at its centre; r_m models go to pixels
+  that no model weights >= ``coverage_weight`` (``select_centers``,
+  ``place_models``).
+* Each model's predictions are clipped to the range of the input colours it
+  fitted (``clamp_to_support``): no extrapolated overshoot, and non-negative
+  input gives non-negative output.
+* The Eq. 13 average is blended with each pixel's own input by inverse MSE:
+  weight E / (E + V) for the input, E the models' Eq. 12 error and V the
+  input's variance (``blend_input``, ``blend_variance``); the former fixed
+  input weight (0.02) is ``input_blend = "fixed"``.
 * Design features are position, depth, normal, albedo (D = 9), each column
   scaled per window, with a small relative ridge (``regularizer``); depth is
   normalised by its 99th percentile (``_normalise_depth``).
@@ -73,7 +81,7 @@ from typing import NamedTuple
 import numpy as np
 
 from .buffers import Buffers
-from .filters import (VALUE_LIMIT, VAR_LIMIT, box_sum, guided_filter, guided_filter_mean,
+from .filters import (VALUE_LIMIT, VAR_LIMIT, box_mean, box_sum, guided_filter, guided_filter_mean,
                       nlm_center_weights, nlm_filter, sobel_gradient, window_offsets)
 from .method import (MethodResult, allocate, param, params_from_dict, relative_error,
                      sampling_gain)
@@ -169,10 +177,22 @@ class Params:
                                         "weight for it at the smallest k reaches this; uncovered "
                                         "pixels get r_m models (Sec. 3.5). Higher = more models, "
                                         "slower, fewer extrapolated predictions", 0.0, 1.0)
+    clamp_predictions: bool = param(True, "clip each model's predictions to the range of the input "
+                                          "colours it fitted (weight >= coverage_weight): no "
+                                          "extrapolated overshoot, no negative output from "
+                                          "non-negative input; off = the paper's fit as is")
+    detail_cover: bool = param(True, "detailed patches get r_s windows on every detail pixel (Sec. "
+                                     "3.5, Fig. 4); off: one r_s window at the patch centre (fewer "
+                                     "models, faster, edges off the centre get r_m windows)")
     fill_rounds: int = param(4, "rounds of r_m models for uncovered pixels (Sec. 3.5); 0 = only the "
                                "geometric cover", 0, 16)
-    input_weight: float = param(0.02, "weight of each pixel's own input colour in the Eq. 13 average "
-                                     "(not in the paper): pixels that the models weight weakly (their "
+    input_blend: str = param("mse", "how each pixel's own input enters Eq. 13: mse = inverse-MSE "
+                                    "blend of the models' average (its Eq. 12 error) and the "
+                                    "input (its variance), derived, no constant; fixed = the "
+                                    "input as one more model at weight input_weight",
+                            choices=("mse", "fixed"))
+    input_weight: float = param(0.02, "with input_blend = fixed: weight of each pixel's own input "
+                                     "colour in the Eq. 13 average (not in the paper): pixels that the models weight weakly (their "
                                      "predictions there are extrapolations) lean on their unbiased "
                                      "input; 0 = pure Eq. 13, higher = closer to the input", 0.0, 1.0)
     chunk_centers: int = param(32, "model centres processed together (at most CHUNK_PIXELS window "
@@ -498,25 +518,35 @@ def select_centers(gra: np.ndarray, params: Params):
     The image is divided into patches of radius r_l (side 2 r_l + 1, from the
     top-left corner).  num = number of pixels with gra > tau in the patch;
     if num >= ``detail_min_pixels`` (num > tau with num a count and tau = 0.4
-    means at least one pixel) the patch gets a window of radius r_s at its
-    centre, otherwise one of radius r_l.  Every pixel that no window covers
+    means at least one pixel) the patch has fine detail and is reconstructed
+    with windows of radius r_s placed on its detail pixels, otherwise with one
+    window of radius r_l at its centre.  Every pixel that no window covers
     then gets a model of radius r_m.
 
-    Choice: tau = 0.4 thresholds the gradient gra of each pixel ("pixels
+    Choices: tau = 0.4 thresholds the gradient gra of each pixel ("pixels
     recognized by gra"), since a count num compared with 0.4 only says
-    "num >= 1".  Patches whose centre lies outside the image (partial patches
-    at the right / bottom border) get no patch window.  The paper builds r_m
-    models by a sequential pixel scan; vectorised, we cut the image into cells
-    of side 2 r_m + 1 and centre one r_m model on the middle of the bounding
-    box of each cell's uncovered pixels, which covers all of them in one pass.
-    Sec. 4's "patch size r = 3" is the Eq. 4 NL-means patch radius (Eq. 4
-    names it r); the detail patches here have radius r_l as Sec. 3.5 says.
-    The three radii are used sorted (r_s <= r_m <= r_l).
+    "num >= 1".  The paper's Fig. 4 reconstructs the *detail pixels* ("the red
+    pixels") with r_s windows and the rest with larger ones, so a detailed
+    patch gets r_s windows wherever it has detail pixels, not one r_s window
+    at its centre (which leaves an edge off the centre to the r_m fill): the
+    detail pixels are cut into cells of side 2 r_s + 1 and one r_s window is
+    centred on the bounding box of each cell's detail pixels
+    (``_cell_box_centers``), which covers all of them.  With
+    ``Params.detail_cover`` off, the former placement (one r_s window at each
+    detailed patch centre) is used.  Patches whose centre lies outside the
+    image (partial patches at the right / bottom border) get no r_l window.
+    The paper builds r_m models by a sequential pixel scan; vectorised, the
+    uncovered pixels are cut into cells of side 2 r_m + 1 and one r_m model
+    is centred on each cell's bounding box, which covers all of them in one
+    pass.  Sec. 4's "patch size r = 3" is the Eq. 4 NL-means patch radius
+    (Eq. 4 names it r); the detail patches here have radius r_l as Sec. 3.5
+    says.  The three radii are used sorted (r_s <= r_m <= r_l).
 
     Returns
     -------
     cy, cx, cr : (N,) int64 centre rows, columns and radii, every pixel of the
-        image lies in at least one window |q - c|_inf <= r.
+        image lies in at least one window |q - c|_inf <= r; every detail
+        pixel of a detailed patch lies in an r_s window.
     detailed : (ny, nx) bool per patch.
     """
     rs, rm, rl = sorted((int(params.radius_small), int(params.radius_medium),
@@ -530,39 +560,60 @@ def select_centers(gra: np.ndarray, params: Params):
     detailed = num >= max(int(params.detail_min_pixels), 1)
     ty, tx = np.meshgrid(np.arange(ny) * side + rl, np.arange(nx) * side + rl, indexing="ij")
     keep = (ty < h) & (tx < w)
-    cy = [ty[keep]]
-    cx = [tx[keep]]
-    cr = [np.where(detailed[keep], rs, rl)]
+    if params.detail_cover:
+        big = keep & ~detailed
+        detail_px = (edge & np.repeat(np.repeat(detailed, side, 0), side, 1))[:h, :w]
+        sy, sx = _cell_box_centers(detail_px, rs)
+        cy = [ty[big], sy]
+        cx = [tx[big], sx]
+        cr = [np.full(int(big.sum()), rl), np.full(sy.size, rs)]
+    else:
+        cy = [ty[keep]]
+        cx = [tx[keep]]
+        cr = [np.where(detailed[keep], rs, rl)]
     covered = np.zeros((h, w), bool)
-    for r in (rs, rl):
-        ind = np.zeros((h, w))
-        sel = cr[0] == r
-        ind[cy[0][sel], cx[0][sel]] = 1.0
-        covered |= box_sum(ind, r) > 0.5
+    for yy, xx, rr in zip(cy, cx, cr):
+        for r in np.unique(rr):
+            ind = np.zeros((h, w))
+            sel = rr == r
+            ind[yy[sel], xx[sel]] = 1.0
+            covered |= box_sum(ind, int(r)) > 0.5
     if not covered.all():
-        side_m = 2 * rm + 1
-        my, mx = -(-h // side_m), -(-w // side_m)
-        unc = np.zeros((my * side_m, mx * side_m), bool)
-        unc[:h, :w] = ~covered
-        cells = unc.reshape(my, side_m, mx, side_m)
-        rows_any = cells.any(axis=3)                  # (my, side_m, mx)
-        cols_any = cells.any(axis=1)                  # (my, mx, side_m)
-        has = rows_any.any(axis=1)                    # (my, mx)
-        ar = np.arange(side_m)
-        big = side_m + 1
-        ymin = np.where(rows_any, ar[None, :, None], big).min(axis=1)
-        ymax = np.where(rows_any, ar[None, :, None], -1).max(axis=1)
-        xmin = np.where(cols_any, ar[None, None, :], big).min(axis=2)
-        xmax = np.where(cols_any, ar[None, None, :], -1).max(axis=2)
-        gy = np.arange(my)[:, None] * side_m + (ymin + ymax) // 2
-        gx = np.arange(mx)[None, :] * side_m + (xmin + xmax) // 2
-        cy.append(gy[has])
-        cx.append(gx[has])
-        cr.append(np.full(int(has.sum()), rm))
+        gy, gx = _cell_box_centers(~covered, rm)
+        cy.append(gy)
+        cx.append(gx)
+        cr.append(np.full(gy.size, rm))
     cy = np.concatenate(cy).astype(np.int64)
     cx = np.concatenate(cx).astype(np.int64)
     cr = np.concatenate(cr).astype(np.int64)
     return cy, cx, cr, detailed
+
+
+def _cell_box_centers(mask: np.ndarray, r: int):
+    """Centres of windows of radius r that cover every True pixel of ``mask``:
+    the image is cut into cells of side 2 r + 1 (from the top-left corner)
+    and each cell holding mask pixels gets one centre at the middle of their
+    bounding box (its extent is <= 2 r, so the window covers it).
+    mask (H, W) bool -> (cy, cx) int64, in cell row-major order."""
+    h, w = mask.shape
+    side_m = 2 * int(r) + 1
+    my, mx = -(-h // side_m), -(-w // side_m)
+    unc = np.zeros((my * side_m, mx * side_m), bool)
+    unc[:h, :w] = mask
+    cells = unc.reshape(my, side_m, mx, side_m)
+    rows_any = cells.any(axis=3)                  # (my, side_m, mx)
+    cols_any = cells.any(axis=1)                  # (my, mx, side_m)
+    has = rows_any.any(axis=1)                    # (my, mx)
+    ar = np.arange(side_m)
+    big = side_m + 1
+    ymin = np.where(rows_any, ar[None, :, None], big).min(axis=1)
+    ymax = np.where(rows_any, ar[None, :, None], -1).max(axis=1)
+    xmin = np.where(cols_any, ar[None, None, :], big).min(axis=2)
+    xmax = np.where(cols_any, ar[None, None, :], -1).max(axis=2)
+    gy = np.arange(my)[:, None] * side_m + (ymin + ymax) // 2
+    gx = np.arange(mx)[None, :] * side_m + (xmin + xmax) // 2
+    return gy[has].astype(np.int64), gx[has].astype(np.int64)
+
 
 def _window_index(cy, cx, r, h, w):
     """Flat pixel indices (c, (2r+1)^2) of the windows of centres (clipped) and
@@ -952,7 +1003,9 @@ class RegressionData:
     cy, cx : (N,) model centres.
     weis : (T,) Eq. 12 iteration weights.
     ridge : ``Params.ridge``; input_weight : Eq. 13 weight of the input
-        (``Params.input_weight``, at least ``FALLBACK_WEIGHT``).
+        (``Params.input_weight``, at least ``FALLBACK_WEIGHT``), used when
+        ``blend`` is "fixed"; blend : ``Params.input_blend``; var_blend :
+        (H W,) the input variance of the "mse" blend (``blend_variance``).
     """
 
     fhat: np.ndarray
@@ -966,13 +1019,17 @@ class RegressionData:
     weis: np.ndarray
     ridge: float
     input_weight: float
+    blend: str = "mse"
+    var_blend: np.ndarray | None = None
+    clamp_weight: float | None = None
 
 
 @dataclass
 class WindowSums:
     """Eq. 13 sums over the models of one iteration, (H W,) per pixel:
     img_num (H W, 3) sum_i w(i, j) y_ij and den sum_i w(i, j); in the last
-    iteration err_num, the same average of the Eq. 12 error; otherwise v_num,
+    iteration err_num, the same average of the Eq. 12 error (in the earlier
+    ones, of the iteration's own error term at k_opt); otherwise v_num,
     v_den (H W, K) float32, the per-k variance maps Var_t(s, k) of Eq. 11."""
 
     img_num: np.ndarray
@@ -985,8 +1042,8 @@ class WindowSums:
     def zeros(cls, npx: int, K: int, last: bool) -> "WindowSums":
         if last:
             return cls(np.zeros((npx, 3)), np.zeros(npx), err_num=np.zeros(npx))
-        return cls(np.zeros((npx, 3)), np.zeros(npx), v_num=np.zeros((npx, K), np.float32),
-                   v_den=np.zeros((npx, K), np.float32))
+        return cls(np.zeros((npx, 3)), np.zeros(npx), err_num=np.zeros(npx),
+                   v_num=np.zeros((npx, K), np.float32), v_den=np.zeros((npx, K), np.float32))
 
 
 def window_inputs(data: RegressionData, chunk: ModelChunk):
@@ -1067,6 +1124,30 @@ def window_error_terms(X, wfit, Yq, Pq, vq, uq, ridge: float, cache: dict):
         blk = block_error(wfit, err_t)                          # Eq. 9-10
     blk = np.where(np.isfinite(blk), np.minimum(blk, VAR_LIMIT), VAR_LIMIT)
     return beta, err_t, blk, var
+
+
+def clamp_to_support(yk, wsel, Yq, min_weight: float):
+    """Clip each model's predictions to the range of the data it fitted.
+
+    A first-order model evaluated at window pixels whose features lie outside
+    those of its fitted pixels extrapolates, and a line through noisy data can
+    leave the data's range far from it (measured: -3.2 on glossy where the
+    reference is >= 0).  The fitted pixels are those the model weights >=
+    ``min_weight`` (``Params.coverage_weight``: the same notion of "fitted,
+    not extrapolated" as the coverage test of Sec. 3.5); each prediction is
+    clipped per channel to [min, max] of their input colours.  Radiance
+    inside the data's range is unchanged, so the paper's fit is kept wherever
+    it interpolates; with non-negative input, every prediction is >= 0.
+    Not in the paper.  A model with no fitted pixel is left unclipped.
+
+    yk (c, n, 3) predictions, wsel (c, n) fit weights at k_opt, Yq (c, n, 3)
+    the fitted colours.  Returns (c, n, 3).
+    """
+    sel = (wsel >= min_weight)[..., None]
+    lo = np.where(sel, Yq, np.inf).min(axis=1, keepdims=True)
+    hi = np.where(sel, Yq, -np.inf).max(axis=1, keepdims=True)
+    ok = lo <= hi
+    return np.where(ok, np.clip(yk, np.where(ok, lo, 0.0), np.where(ok, hi, 0.0)), yk)
 
 
 def predict_at_bandwidth(wk, X, beta, kk):
@@ -1158,6 +1239,70 @@ def combine_models(img_num, den, y, input_weight: float):
     return img_num.reshape(y.shape), dd
 
 
+def blend_variance(var0: np.ndarray, n: np.ndarray) -> np.ndarray:
+    """Variance of the input y_j for ``blend_input``: the larger of the
+    pixel's own per-sample variance n Var_0 and its median over the 3 x 3
+    neighbourhood (edge-replicated), divided by the pixel's n.  Why: a pixel's own sample variance is
+    correlated with its own mean (a pixel that drew a bright sample has a
+    large one), so weighting the input by it pulls bright pixels to the models
+    and keeps dark ones: the image darkens (measured -2.2 % on cornell at
+    8 spp, -5 % on glossy; docs/notes/rhf.md).  A mean over the neighbours
+    would spread a firefly's huge variance onto them (they then trust models
+    the firefly broke); the median of 9 ignores up to 4 such pixels.  The
+    pixel's own estimate is kept where it is larger (the max), so a firefly
+    itself is still known to be uncertain and goes to the models; only a
+    pixel whose own samples happen to agree (an underestimated variance) is
+    corrected.  var0, n (H, W) -> (H, W)."""
+    nn = np.maximum(np.asarray(n, np.float64), 1.0)
+    s2 = np.minimum(np.asarray(var0, np.float64) * nn, VAR_LIMIT)
+    h, w = s2.shape
+    p = np.pad(s2, 1, mode="edge")
+    stack = np.stack([p[dy:dy + h, dx:dx + w] for dy in range(3) for dx in range(3)], axis=-1)
+    return np.maximum(np.median(stack, axis=-1), s2) / nn
+
+
+def blend_input(img_num, den, err_num, y, var0):
+    """Eq. 13 output blended with the pixel's own input by inverse MSE.
+
+    m_j = sum_i w(i, j) y_ij / sum_i w(i, j) (Eq. 13) has the estimated squared
+    error E_j = sum_i w(i, j) e_ij / sum_i w(i, j) (Eq. 12 at k_opt, merged
+    like Eq. 13); the input y_j is unbiased with variance V_j (Var_0 of
+    Eq. 11).  The convex combination of two estimates with the least expected
+    squared error, taking their errors as uncorrelated, is
+    ``out = (1 - a) m + a y`` with ``a = E / (E + V)`` (inverse-MSE weights),
+    and its error ``(1 - a)^2 E + a^2 V = E V / (E + V)``.
+
+    Why (not in the paper): the models are sparse, so most pixels are
+    predicted far from a centre; where the covering models fit the pixel
+    badly (extrapolation, an edge the features miss) their bias makes E large
+    and the pixel leans on its input; where they fit, E ~ the model variance
+    << V and the input barely enters.  This replaces a fixed input weight
+    (``input_blend = "fixed"``) with the method's own error estimate.  Where
+    no model weights the pixel (den = 0) a = 1 (FALLBACK_WEIGHT); where E = V
+    = 0 a = 0.
+
+    img_num (H W, 3), den (H W,), err_num (H W,) sums of
+    ``accumulate_predictions`` and of the weighted errors (overwritten);
+    y (H, W, 3); var0 (H W,).  Returns out (H, W, 3) (a view of img_num) and
+    the blended error (H W,).
+    """
+    eps = FALLBACK_WEIGHT
+    dd = np.add(den, eps, out=den)
+    E = np.add(err_num, eps * var0, out=err_num)
+    E /= dd
+    tot = E + var0
+    a = np.divide(E, tot, out=np.zeros_like(E), where=tot > 0)
+    a = np.where(den > eps, a, 1.0)                 # den was overwritten: den + eps
+    for ch in range(3):
+        yc = y[..., ch].ravel()
+        m = img_num[:, ch]
+        m += eps * yc
+        m /= dd
+        m += a * (yc - m)
+    err = (1.0 - a) ** 2 * E + a * a * var0
+    return img_num.reshape(y.shape), err
+
+
 def regress_chunk(data: RegressionData, chunk: ModelChunk, pilots, Ainv, Ecum, k_idx,
                   sums: WindowSums, last: bool):
     """One chunk of models in iteration t = len(pilots): Eq. 2 fit, Eq. 11
@@ -1178,10 +1323,14 @@ def regress_chunk(data: RegressionData, chunk: ModelChunk, pilots, Ainv, Ecum, k
     kk = choose_bandwidth(Ecum[ids])                            # Eq. 10
     k_idx[ids] = kk
     wm, yk = predict_at_bandwidth(wk, X, beta, kk)
+    if data.clamp_weight is not None:
+        yk = clamp_to_support(yk, wfit[np.arange(kk.size), kk], Yq, data.clamp_weight)
     flat = idx[inside]
     lo, hi = int(flat.min()), int(flat.max()) + 1
     wsel = wm[inside]
     accumulate_predictions(sums.img_num, sums.den, flat, wsel, yk, inside, lo, hi)
+    if not last and data.blend == "mse":
+        _bincount_add(sums.err_num, flat, wsel * err_t[np.arange(kk.size), kk][inside], lo, hi)
     if last:
         ek = error_at_bandwidth(X, wfit, Yq, idx, pilots, cache["Ainv"], kk, err_t, data)
         _bincount_add(sums.err_num, flat, wsel * ek[inside], lo, hi)
@@ -1208,9 +1357,14 @@ def regression_pass(data: RegressionData, chunks: list, pilots: list, a_cache: l
     sums = WindowSums.zeros(h * w, K, last)
     for gi, chunk in enumerate(chunks):
         a_cache[gi] = regress_chunk(data, chunk, pilots, a_cache[gi], Ecum, k_idx, sums, last)
-    img, dd = combine_models(sums.img_num, sums.den, data.y, data.input_weight)
-    if last:
-        return img, (sums.err_num + data.input_weight * data.var0) / dd
+    if data.blend == "mse":
+        img, err = blend_input(sums.img_num, sums.den, sums.err_num, data.y, data.var_blend)
+        if last:
+            return img, err
+    else:
+        img, dd = combine_models(sums.img_num, sums.den, data.y, data.input_weight)
+        if last:
+            return img, (sums.err_num + data.input_weight * data.var0) / dd
     np.divide(sums.v_num, sums.v_den, out=sums.v_num, where=sums.v_den > 0)
     return img, sums.v_num.reshape(h, w, K)
 
@@ -1297,7 +1451,6 @@ def rhf_reconstruct(color, color_var, feats, feat_var, n=None, params: Params | 
     y_in, y, vy, nn, bad, zero_var, vy_filled = prepare_color(color, color_var, n, zero_var)
     del color_var
     F7, V7 = prepare_features(feats, feat_var, nn, bad)
-    del nn
     t_prep = time.perf_counter()
 
     fhat = prefilter_features(F7, V7, params)                   # Sec. 3.2, Eq. 3-7
@@ -1305,6 +1458,9 @@ def rhf_reconstruct(color, color_var, feats, feat_var, n=None, params: Params | 
     t_feat = time.perf_counter()
     M, vM = colour_guide(y, vy, fhat, params)                   # Sec. 3.3, Eq. 8
     var0 = vy.mean(axis=2).ravel()                              # Var_0 of Eq. 11
+    var_blend = (blend_variance(var0.reshape(nn.shape), nn).ravel()
+                 if params.input_blend == "mse" else None)
+    del nn
     del vy
     gra = feature_gradient(fhat)                                # Eq. 14
     cy, cx, cr, detailed = select_centers(gra, params)          # Sec. 3.5
@@ -1318,7 +1474,9 @@ def rhf_reconstruct(color, color_var, feats, feat_var, n=None, params: Params | 
         guide_var=(vM.mean(axis=2, dtype=np.float64).ravel()
                    if params.bias_noise_correction else None),
         cy=models.cy, cx=models.cx, weis=iteration_weights(max(1, int(params.iterations))),
-        ridge=params.ridge, input_weight=max(float(params.input_weight), FALLBACK_WEIGHT))
+        ridge=params.ridge, input_weight=max(float(params.input_weight), FALLBACK_WEIGHT),
+        blend=str(params.input_blend), var_blend=var_blend,
+        clamp_weight=float(params.coverage_weight) if params.clamp_predictions else None)
     del vM
     img, err_map, Ecum, k_idx = fit_models(data, models.chunks, M, ks.size)  # Eq. 9-13
     t_reg = time.perf_counter()

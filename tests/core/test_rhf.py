@@ -221,8 +221,11 @@ def test_select_centers_cover_and_window_sizes():
         assert np.all((cy >= 0) & (cy < h) & (cx >= 0) & (cx < w))
         if h > 40:
             assert det[0, 0] and not det[1, 0]
-            assert 5 in cr[(cy == 15) & (cx == 15)]            # detailed patch: r_s
+            assert 5 in cr[(cy == 10) & (cx == 10)]            # r_s on the detail pixel
+            assert 15 not in cr[(cy == 15) & (cx == 15)]       # detailed patch: no r_l
             assert 15 in cr[(cy == 46) & (cx == 15)]           # smooth patch: r_l
+    cy, cx, cr, det = rhf.select_centers(gra, dataclasses.replace(p, detail_cover=False))
+    assert 5 in cr[(cy == 15) & (cx == 15)]                    # former placement: centre
 
 
 @pytest.mark.parametrize("r", [1, 2, 4])
@@ -278,7 +281,7 @@ def test_input_weight_pulls_toward_the_input_monotonically():
     truth, buf = scene(40, 40, seed=2)
     dist = []
     for iw in (0.0, 0.001, 0.02, 0.2, 1.0):
-        res = rhf.reconstruct(buf, rhf.Params(input_weight=iw))
+        res = rhf.reconstruct(buf, rhf.Params(input_blend="fixed", input_weight=iw))
         assert np.isfinite(res.image).all() and np.isfinite(res.error).all()
         dist.append(float(np.abs(res.image - buf.color.mean).mean()))
     assert all(a > b for a, b in zip(dist, dist[1:]))
@@ -371,7 +374,9 @@ def test_results_do_not_depend_on_chunking(monkeypatch, kw):
     b = run(buf, chunk_centers=3, **kw)
     assert a.info["models"] == b.info["models"]
     np.testing.assert_array_equal(b.k_opt, a.k_opt)
-    np.testing.assert_allclose(b.image, a.image, rtol=1e-10, atol=1e-12)
+    # with T > 2 the middle pass's input blend reads the float32 Var_t maps
+    tol = 1e-10 if a.info.get("iterations", 2) <= 2 and not kw else 1e-6
+    np.testing.assert_allclose(b.image, a.image, rtol=tol, atol=1e-12)
     # (the per-k variance maps of Eq. 11 are float32 sums: rounding ~1e-7)
     np.testing.assert_allclose(b.error, a.error, rtol=1e-6, atol=1e-15)
 
@@ -712,3 +717,160 @@ def test_regression_weights_and_model_chunks():
     for ch in models.chunks:
         assert ch.weights.shape == (ch.ids.size, ks.size, (2 * ch.radius + 1) ** 2)
         assert ch.ids.size == 1 or ch.weights[:, 0].size <= rhf.CHUNK_PIXELS
+
+
+# ------------------------------------------------- windows, input blend, range
+def window_radius_map(cy, cx, cr, shape):
+    """Smallest radius of the windows covering each pixel (inf: none)."""
+    out = np.full(shape, np.inf)
+    for a, b, r in zip(cy, cx, cr):
+        sl = (slice(max(0, a - r), a + r + 1), slice(max(0, b - r), b + r + 1))
+        out[sl] = np.minimum(out[sl], r)
+    return out
+
+
+def _offcentre_edge_scene(seed=11, spp=4):
+    """Albedo step at column 24 (patch centres at 15 and 46): detail off the
+    centre of its r_l patch; features carry the edge, noise on the colour."""
+    h, w = 62, 62
+    rng = np.random.default_rng(seed)
+    alb = np.where(np.arange(w)[None, :, None] < 24, 0.2, 0.8) * np.ones((h, w, 3))
+    truth = alb * 0.9
+    feats = flat_features(h, w)
+    feats["albedo"] = alb
+    subs = [truth + rng.normal(size=truth.shape) * 0.25 / np.sqrt(spp) for _ in range(4)]
+    return truth, Buffers.from_subsets(subs, [spp] * 4, [feats] * 4)
+
+
+def test_detail_pixels_get_small_windows_and_lower_error():
+    """Sec. 3.5 / Fig. 4: the detail pixels of a detailed patch are
+    reconstructed with r_s windows.  An edge 9 px off its patch centre was
+    left to r_m fill windows by the former placement (one r_s window at the
+    centre); now every edge pixel lies in an r_s window and the error on the
+    edge columns drops."""
+    truth, buf = _offcentre_edge_scene()
+    new = run(buf, input_blend="fixed", clamp_predictions=False)
+    old = run(buf, input_blend="fixed", clamp_predictions=False, detail_cover=False)
+    edge = new.gradient > rhf.Params().edge_threshold
+    assert edge[:, 22:26].any() and not edge[:, :20].any()
+    rad_new = window_radius_map(new.cy, new.cx, new.cr, edge.shape)
+    rad_old = window_radius_map(old.cy, old.cx, old.cr, edge.shape)
+    assert np.all(rad_new[edge] == 5)
+    assert np.mean(rad_old[edge] == 5) < 0.5
+    cols = slice(21, 27)
+    e_new = ((new.image[:, cols] - truth[:, cols]) ** 2).mean()
+    e_old = ((old.image[:, cols] - truth[:, cols]) ** 2).mean()
+    assert e_new < 0.8 * e_old
+
+
+def test_blend_input_is_inverse_mse_combination():
+    """out = (1 - a) m + a y with a = E / (E + V), error E V / (E + V);
+    a pixel no model weights keeps its input, E = V = 0 keeps the models."""
+    rng = np.random.default_rng(3)
+    npx = 7
+    y = rng.uniform(0, 1, (1, npx, 3))
+    den = np.array([2.0, 0.5, 1.0, 0.0, 1.0, 3.0, 1.0])
+    m = rng.uniform(0, 1, (npx, 3))
+    E = np.array([0.1, 0.0, 4.0, 0.3, 0.0, 1e-3, 0.2])
+    V = np.array([0.1, 0.2, 0.01, 0.3, 0.0, 1e-3, 0.0])
+    img, err = rhf.blend_input(m * den[:, None], den.copy(), E * den, y, V)
+    eps = rhf.FALLBACK_WEIGHT
+    mm = (m * den[:, None] + eps * y[0]) / (den + eps)[:, None]
+    EE = (E * den + eps * V) / (den + eps)
+    a = np.where(EE + V > 0, EE / np.where(EE + V > 0, EE + V, 1), 0.0)
+    a[den == 0] = 1.0
+    np.testing.assert_allclose(img[0], mm + a[:, None] * (y[0] - mm), rtol=1e-12, atol=1e-15)
+    np.testing.assert_allclose(err, (1 - a) ** 2 * EE + a * a * V, rtol=1e-12, atol=1e-15)
+    np.testing.assert_allclose(img[0, 3], y[0, 3])                      # no model: input
+    np.testing.assert_allclose(img[0, 4], m[4], rtol=1e-9)              # E = V = 0: models
+    assert a[2] > 0.99 and a[5] == pytest.approx(0.5)
+    assert np.all(err <= np.minimum(EE, V) + 1e-15)                     # never worse than either
+
+
+def test_blend_variance_is_robust_median_of_neighbours():
+    v = np.full((9, 9), 0.01)
+    n = np.full((9, 9), 4.0)
+    v[4, 4] = 1e6                                         # a firefly's variance
+    out = rhf.blend_variance(v, n)
+    assert out[4, 4] == 1e6                               # the firefly keeps its own
+    out[4, 4] = 0.01
+    np.testing.assert_allclose(out, 0.01)                 # its neighbours ignore it
+    v2 = np.random.default_rng(0).uniform(0, 1, (9, 9))
+    ref = np.median(np.lib.stride_tricks.sliding_window_view(np.pad(v2 * 4, 1, mode="edge"),
+                                                             (3, 3)).reshape(9, 9, 9), -1)
+    ref = np.maximum(ref, v2 * 4) / 4
+    np.testing.assert_allclose(rhf.blend_variance(v2, n), ref)
+
+
+def test_clamp_to_support_keeps_interpolation_and_bounds_extrapolation():
+    rng = np.random.default_rng(1)
+    Yq = rng.uniform(0.2, 0.5, (2, 9, 3))
+    w = np.ones((2, 9))
+    w[1, :4] = 0.0                                        # not fitted: their colours ignored
+    Yq[1, :4] = 9.0
+    yk = np.concatenate([rng.uniform(0.25, 0.45, (2, 5, 3)),
+                         np.full((2, 4, 3), -3.0)], axis=1)
+    yk[0, :5] = np.clip(yk[0, :5], Yq[0].min(0), Yq[0].max(0))
+    out = rhf.clamp_to_support(yk, w, Yq, 0.01)
+    np.testing.assert_array_equal(out[0, :5], yk[0, :5])            # inside the range: kept
+    np.testing.assert_array_equal(out[0, 5:], np.broadcast_to(Yq[0].min(0), (4, 3)))
+    np.testing.assert_array_equal(out[1, 5:], np.broadcast_to(Yq[1, 4:].min(0), (4, 3)))
+    assert np.all(out[1] <= Yq[1, 4:].max(axis=0))                  # ignores unfitted pixels
+    none = rhf.clamp_to_support(yk, np.zeros((2, 9)), Yq, 0.01)     # nothing fitted: unclipped
+    np.testing.assert_array_equal(none, yk)
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_non_negative_input_gives_non_negative_output(seed):
+    """Dark, high-contrast stripes with heavy-tailed non-negative noise:
+    with the models clipped to their data's range the output is never
+    negative; without the clip, the paper's fit extrapolates below 0 here.
+    With fireflies added the output stays non-negative.  (The mean is not
+    asserted here: with noise this skewed RHF darkens, docs/notes/rhf.md.)"""
+    rng = np.random.default_rng(seed)
+    h, w = 48, 48
+    truth, _ = scene(h, w, seed=seed)
+    truth = truth * np.where(np.arange(w)[None, :, None] % 16 < 8, 1.0, 0.02)
+    subs = [truth * rng.exponential(1.0, truth.shape) for _ in range(4)]
+    feats = flat_features(h, w)
+    buf = Buffers.from_subsets(subs, [2] * 4, [feats] * 4)
+    res = rhf.reconstruct(buf)
+    assert res.image.min() >= 0.0
+    assert relmse(res.image, truth) < relmse(buf.color.mean, truth)
+    raw = rhf.reconstruct(buf, rhf.Params(clamp_predictions=False, input_blend="fixed"))
+    assert raw.image.min() < 0.0
+    subs[0][rng.uniform(size=(h, w)) < 0.01] = 20.0
+    buf = Buffers.from_subsets(subs, [2] * 4, [feats] * 4)
+    assert rhf.reconstruct(buf).image.min() >= 0.0
+
+
+def test_new_options_off_give_the_former_algorithm_and_finite_output():
+    """With the three additions off the output is the former algorithm's;
+    they are all finite on hostile input (NaN, Inf, huge, negative)."""
+    truth, buf = scene(40, 40, seed=4)
+    a = run(buf, detail_cover=False, input_blend="fixed", clamp_predictions=False)
+    b = run(buf)
+    assert not np.array_equal(a.image, b.image)
+    for res in (a, b):
+        assert np.isfinite(res.image).all() and np.isfinite(res.error).all()
+    bad = buf.color.mean.copy()
+    bad[3, 3] = np.nan
+    bad[5, 5] = 1e30
+    bad[7, 7] = -2.0
+    var = buf.variance_of_mean()
+    var[9, 9] = np.inf
+    feats, fvars = rhf._feature_arrays(buf)
+    out = rhf.rhf_reconstruct(bad, var, feats, fvars, buf.n, rhf.Params())
+    assert np.isfinite(out.image).all() and np.isfinite(out.error).all() and out.error.min() >= 0
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_mean_brightness_kept_and_error_below_former_algorithm(seed):
+    """Mean within 0.5 % of the sample mean, and the relMSE below the former
+    algorithm's (centre r_s windows, fixed input weight, no clip)."""
+    truth, buf = scene(48, 48, seed=seed)
+    res = rhf.reconstruct(buf)
+    old = rhf.reconstruct(buf, rhf.Params(detail_cover=False, input_blend="fixed",
+                                          clamp_predictions=False))
+    assert abs(res.image.mean() / buf.color.mean.mean() - 1) < 0.005
+    assert relmse(res.image, truth) < 0.9 * relmse(old.image, truth)
