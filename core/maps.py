@@ -12,9 +12,8 @@ follow and that is worth following:
    weighted mean of its 3x3 neighbourhood, the weights following the degrees of
    freedom ``nu = k - 1`` of each estimate: a pixel estimated from few groups
    among well-sampled neighbours gets a bounded share (their value), one with
-   many groups keeps its own.  It replaces the former fixed cap of
-   twice the iteration's mean, which flattened the maps the planner then
-   rounded up to whole frames.
+   many groups keeps its own.  (The loop's cap of twice the iteration's
+   mean, ``Options.max_pixel_share``, still applies after both steps.)
 2. :func:`pool_to_blocks`: the mean over the planner's aligned ``min_size``
    blocks, so the planner's rectangles cover whole blocks of equal count and
    the samples it adds beyond the map come only from merging blocks to save

@@ -85,14 +85,16 @@ class Options:
     task_cost: float = param(regions.DEFAULT_TASK_COST, "fixed cost of one region render in "
                              "pixel-samples; higher merges more regions (fewer renders, samples less "
                              "adaptive)", 0.0, None, label="Region Cost")
-    #: Our safeguard, not in the papers: per-pixel estimates from a few sample
+    #: Our safeguards, not in the papers: per-pixel estimates from a few sample
     #: groups are heavy-tailed, so the map is pooled by confidence and to the
-    #: planner's blocks (core/maps.py) before planning
+    #: planner's blocks (core/maps.py) before planning, and then capped at twice
+    #: the iteration's mean: with today's maps the cap still measures better
+    #: than following them (docs/notes/planner.md)
     pool_maps: bool = param(True, "pool each sample map over 3x3 pixels weighted by how many "
                             "sample groups each pixel's estimate rests on, then over the region "
                             "blocks, before planning; off follows the method's per-pixel map",
                             label="Pool Sample Maps")
-    max_pixel_share: float = param(0.0, "most samples a pixel may get in one iteration, as a "
+    max_pixel_share: float = param(2.0, "most samples a pixel may get in one iteration, as a "
                                    "multiple of the iteration's mean (0: no cap); lower spreads "
                                    "samples more evenly, higher follows the method's map to its peaks",
                                    0.0, None, label="Max Pixel Share", soft_max=64.0)
