@@ -10,9 +10,9 @@ _cli_handle = None
 
 def _modules():
     """Modules that define Blender classes, in registration order."""
-    from .addon import oidn_blender, panel, props
+    from .addon import oidn_blender, panel, preferences, props
     from .operators import render_op
-    return (oidn_blender, props, render_op, panel)
+    return (oidn_blender, props, preferences, render_op, panel)
 
 
 def register():

@@ -21,10 +21,16 @@ METHOD_ITEMS = [
     ("awr", "Adaptive wavelets (Overbeck 2009)", "Wavelet-domain sampling and soft-threshold reconstruction"),
     ("lp", "Linear predictions (Moon 2015)", "Local linear models over features with adaptive windows"),
     ("rhf", "Robust high-order function (Liu 2018)", "First-order regression with prefiltered features"),
+    ("oidn", "OIDN in the loop", "OpenImageDenoise as the reconstruction, samples where its dual-buffer "
+     "error estimate is high"),
     ("uniform", "Uniform", "Plain Cycles at the same sample count (baseline)"),
 ]
 
 _param_classes: dict = {}
+
+#: options of a path property that may start with "//" (the .blend's folder):
+#: Blender 5.0 warns on such a path without the flag, which 4.2 does not know
+PATH_OPTIONS = {"PATH_SUPPORTS_BLEND_RELATIVE"} if bpy.app.version >= (4, 5, 0) else set()
 
 
 def _label(f) -> str:
@@ -79,12 +85,20 @@ def method_params(settings, method: str) -> dict:
     return {k: getattr(group, k) for k in cls.__annotations__}
 
 
+def budget_spp(scene) -> float:
+    """The run's mean samples per pixel: Cycles' own Render "Max Samples"
+    (``scene.cycles.samples``) with "Use Scene Samples", else the panel's."""
+    s = scene.cycles_adaptive
+    return float(scene.cycles.samples) if s.use_scene_samples else float(s.spp)
+
+
 def options(scene):
     """The loop's Options from the panel's settings of ``scene`` (the same
     fields the CLI's flags set; method parameters from their groups)."""
     s = scene.cycles_adaptive
-    return Options(method=s.method, frame=scene.frame_current, params=method_params(s, s.method),
-                   **{f.name: getattr(s, f.name) for f in option_fields("ui")})
+    values = {f.name: getattr(s, f.name) for f in option_fields("ui")}
+    values["spp"] = budget_spp(scene)
+    return Options(method=s.method, frame=scene.frame_current, params=method_params(s, s.method), **values)
 
 
 class CYCLESADAPTIVE_PG_settings(bpy.types.PropertyGroup):
@@ -94,6 +108,7 @@ class CYCLESADAPTIVE_PG_settings(bpy.types.PropertyGroup):
     method: EnumProperty(name="Method", items=METHOD_ITEMS, default=Options().method,
                          description="Adaptive method: where to put samples and how to reconstruct")
     output_path: StringProperty(name="Output", subtype="FILE_PATH", default="//adaptive.exr",
+                                options=PATH_OPTIONS,
                                 description="Multilayer EXR written after the run (a PNG preview "
                                             "goes beside it)")
     frame_range: BoolProperty(name="Frame Range", default=False,
@@ -109,6 +124,21 @@ class CYCLESADAPTIVE_PG_settings(bpy.types.PropertyGroup):
                            description="How frames of a range reuse earlier samples")
     overwrite: BoolProperty(name="Overwrite", default=False,
                             description="Replace an existing output file")
+    use_scene_samples: BoolProperty(name="Use Scene Samples", default=False,
+                                    description="Take the budget (mean samples per pixel) from Cycles' "
+                                                "Render Max Samples instead of Samples per Pixel below")
+    # preferences applied once (addon/preferences.py: apply_defaults)
+    configured: BoolProperty(default=False)
+    # summary of the last run, drawn by the panel
+    has_result: BoolProperty(default=False)
+    last_method: StringProperty(name="Method", default="")
+    last_spp: FloatProperty(name="Samples per Pixel", default=0.0, description="Mean samples per pixel rendered")
+    last_seconds: FloatProperty(name="Time", default=0.0,
+                                description="Wall time of the run, outputs included")
+    last_error: FloatProperty(name="Estimated Error", default=0.0, precision=5,
+                              description="relMSE predicted by the run's own error estimate (no reference)")
+    last_reconstructed: BoolProperty(name="Reconstructed", default=True,
+                                     description="False after a cancel: the output is the sample mean")
     # progress, shown by the panel while the operator runs
     running: BoolProperty(default=False, options={"SKIP_SAVE"})
     progress: FloatProperty(default=0.0, min=0.0, max=1.0, subtype="FACTOR", options={"SKIP_SAVE"})

@@ -186,55 +186,55 @@ class Params:
     wavelet: str = param(
         "cdf97", "Filter bank: cdf97 (paper default, smoothest), legall53 (faster, some "
         "artifacts) or haar (fastest, blocky); speed vs smoothness (Fig. 8)",
-        choices=("cdf97", "legall53", "haar"))
+        choices=("cdf97", "legall53", "haar"), label="Wavelet")
     smoothing: float = param(
         1.0, "c_s of Eq. 11: threshold = c_s x coefficient error; larger removes more "
-        "noise but may ring or blur edges", 0.0, 10.0)
+        "noise but may ring or blur edges", 0.0, 10.0, label="Smoothing")
     recon_filter_sum: float = param(
         2.0 ** -0.5, "Sum of the squared reconstruction filters (paper 2^-1/2); lower damps "
-        "smoothing at coarse levels (fewer artifacts, more low-frequency noise)", 0.01, 2.0)
+        "smoothing at coarse levels (fewer artifacts, more low-frequency noise)", 0.01, 2.0, label="Reconstruction Filter Energy")
     sample_filter_sum: float = param(
         1.05, "Sum of the squared sampler low-pass filter (Eq. 9, paper 1.05); above 1 "
-        "sends samples to coarser levels", 0.5, 2.0)
+        "sends samples to coarser levels", 0.5, 2.0, label="Sampling Filter Energy")
     levels: int = param(
         0, "Wavelet levels for reconstruction, 0 = full depth (paper); fewer levels are "
-        "slightly faster but leave low-frequency noise", 0, 30)
+        "slightly faster but leave low-frequency noise", 0, 30, label="Levels")
     sample_levels: int = param(
         5, "Coarsest scale-coefficient level the sampler considers (paper 0..5); more "
-        "levels allow coarser, smoother sampling", 0, 12)
+        "levels allow coarser, smoother sampling", 0, 12, label="Sampling Levels")
     batch_base: int = param(
         64, "Samples per chosen coefficient are batch_base x 2^level (paper 64); larger "
-        "batches adapt less finely but plan faster", 1, 1 << 20)
+        "batches adapt less finely but plan faster", 1, 1 << 20, label="Samples per Coefficient")
     rounds: int = param(
         16, "Priority updates per render iteration (paper: after every coefficient); "
-        "more rounds follow the paper more closely at O(pixels) cost each", 1, 4096)
+        "more rounds follow the paper more closely at O(pixels) cost each", 1, 4096, label="Priority Updates")
     recon_variance: str = param(
         "sample", "sigma^2(F) of Eq. 10 (reconstruction thresholds): sample (the per-sample "
         "variance from the sample subsets, default: threshold = c_s standard deviations) or "
         "range (the paper's (I_max - I_min)^2 bound, d2(N)^2 x larger: much smoother, "
-        "erases texture)", choices=("sample", "range"))
+        "erases texture)", choices=("sample", "range"), label="Reconstruction Variance")
     sampler_intensity: float = param(
         0.5, "Median luminance the sampler maps the image to before Eq. 8; higher weighs "
-        "edges (wavelet magnitude) more against variance", 1e-3, 1e3)
+        "edges (wavelet magnitude) more against variance", 1e-3, 1e3, label="Sampler Brightness")
     seed: int = param(0, "Seed for breaking ties between equal priorities (reproducibility only)",
-                      0, 2 ** 31 - 1)
+                      0, 2 ** 31 - 1, label="Seed")
     shifts: int = param(
         4, "Translations of the wavelet grid averaged in the reconstruction (cycle spinning; "
         "1 = the paper's single transform); more remove more grid artifacts, cost grows "
-        "linearly", 1, len(_SHIFT_ORDER))
+        "linearly", 1, len(_SHIFT_ORDER), label="Grid Shifts")
     threads: int = param(
         0, "Worker threads for the transforms (one job per channel and grid shift; 0 = one "
-        "per core from 0.5 megapixel, one below)", 0, 64)
+        "per core from 0.5 megapixel, one below)", 0, 64, label="Threads")
     consistency: float = param(
         3.0, "Per-pixel consistency (our addition; 0 = the paper's Eq. 11 alone): every pixel is "
         "kept within this many standard errors of its own sample mean (Student-t for its "
         "subsets); stops the pooled thresholds from spreading fireflies and noisy regions into "
-        "low-variance neighbours", 0.0, 100.0)
+        "low-variance neighbours", 0.0, 100.0, label="Pixel Consistency")
     precision: str = param(
         "float32", "Arithmetic of the reconstruction's transforms: float32 (default, about 2x "
         "faster; each coefficient's correction errs by at most ~1e-7 of the local signal "
         "and never by more than twice its threshold) or float64 (exact to ~1e-15)",
-        choices=("float32", "float64"))
+        choices=("float32", "float64"), label="Precision")
 
 
 # ----------------------------------------------------------------------------

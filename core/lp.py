@@ -133,32 +133,32 @@ class Params:
 
     radius: int = param(
         9, "half width R of the filtering window (paper: 9, i.e. 19x19): the largest prediction "
-        "window; larger smooths more and costs ~R^2 more time per centre", 1, 15)
+        "window; larger smooths more and costs ~R^2 more time per centre", 1, 15, label="Window Radius")
     granularity: int = param(
         0, "spacing g of the first centre-pixel grid (Sec. 5.1), halved each pass; 0 = window "
-        "width 2R+1 (paper); larger tries fewer, bigger models first (faster, maybe coarser)", 0, 256)
+        "width 2R+1 (paper); larger tries fewer, bigger models first (faster, maybe coarser)", 0, 256, label="Centre Spacing")
     delta: float = param(
         1e-3, "RLS initial confidence delta, P(0) = I/delta (paper: 0.001); larger regularises "
-        "the models towards the centre value (stabler, more biased)", 1e-9, 1.0)
+        "the models towards the centre value (stabler, more biased)", 1e-9, 1.0, label="Initial Confidence")
     epsilon: float = param(
         1e-3, "epsilon of the relative error xi/(f^2 + epsilon) that drives adaptive sampling "
-        "(paper: 0.001); larger sends fewer samples to dark pixels", 1e-8, 1.0)
+        "(paper: 0.001); larger sends fewer samples to dark pixels", 1e-8, 1.0, label="Error Epsilon")
     svd_floor: float = param(
         0.01, "constant part of the truncated-SVD threshold on normalised feature singular values "
-        "(Moon 2014: 0.01); larger drops more feature directions (faster, less detail)", 0.0, 10.0)
+        "(Moon 2014: 0.01); larger drops more feature directions (faster, less detail)", 0.0, 10.0, label="Feature Threshold")
     svd_noise_factor: float = param(
         2.0, "TSVD threshold multiple of the feature-noise spectral norm (Moon 2014: 2); larger "
-        "ignores noisier features (robust to DoF/motion noise, may lose edges)", 0.0, 100.0)
+        "ignores noisier features (robust to DoF/motion noise, may lose edges)", 0.0, 100.0, label="Feature Noise Factor")
     min_rank: int = param(
         2, "feature directions always kept by the TSVD (Moon 2014: 2, the screen plane); "
-        "smaller gives smaller, faster but blurrier models", 0, 9)
+        "smaller gives smaller, faster but blurrier models", 0, 9, label="Min Feature Rank")
     variance_corrected: bool = param(
         True, "subtract the test pixels' variance from the Eq. 5/7 errors so they estimate the "
-        "error against the truth like xi(k(0)); off = literal paper (filters far less)", 0, 1)
+        "error against the truth like xi(k(0)); off = literal paper (filters far less)", 0, 1, label="Variance Correction")
     chunk: int = param(
         0, "centre pixels processed per vectorised batch (0 = auto: pixels / 1024, "
         "between 32 and 256, so the workspace stays under ~80 bytes per pixel); "
-        "larger has less Python overhead but uses ~80 KB more memory per centre", 0, 65536)
+        "larger has less Python overhead but uses ~80 KB more memory per centre", 0, 65536, label="Batch Size")
 
 
 @dataclass

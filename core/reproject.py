@@ -146,42 +146,42 @@ class Params:
     max_error: float = param(
         1.0 / 256.0, "Algorithm 2's maximum reprojection error epsilon (thesis: 1/256), absolute in image "
         "units: the Eq. 15 view-dependence bound must stay below it. Larger reprojects more "
-        "glossy pixels (faster, risks stale highlights)", 0.0, 1.0)
+        "glossy pixels (faster, risks stale highlights)", 0.0, 1.0, label="Max Reprojection Error")
     max_specular_share: float = param(
         0.5, "pixels whose glossy + transmission light exceeds this share of the combined "
         "luminance are never reprojected (thesis: no specular/refractive reprojection). "
-        "Smaller is safer, larger reuses more", 0.0, 1.0)
+        "Smaller is safer, larger reuses more", 0.0, 1.0, label="Max Specular Share")
     confidence: float = param(
         2.0, "z of the upper confidence bounds on noisy glossy/transmission passes in the Eq. 15 "
-        "bound; larger is more conservative (fewer glossy pixels reprojected)", 0.0, 10.0)
+        "bound; larger is more conservative (fewer glossy pixels reprojected)", 0.0, 10.0, label="Confidence")
     occlusion_tolerance: float = param(
         0.01, "occlusion test epsilon as a fraction of the camera distance (added to "
         "occlusion_pixels footprints); larger accepts more but misses occluders closer "
-        "to the surface", 0.0, 1.0)
+        "to the surface", 0.0, 1.0, label="Occlusion Tolerance")
     occlusion_pixels: float = param(
         1.0, "occlusion test slack in pixel footprints at the point's distance (sub-pixel "
-        "offsets on slanted surfaces); larger accepts more grazing surfaces", 0.0, 16.0)
+        "offsets on slanted surfaces); larger accepts more grazing surfaces", 0.0, 16.0, label="Occlusion Slack (px)")
     consistency_tolerance: float = param(
         0.01, "relative mismatch allowed between a pixel's position and its depth before it "
-        "counts as mixed (edges) or a specular chain; 0 disables the test", 0.0, 1.0)
+        "counts as mixed (edges) or a specular chain; 0 disables the test", 0.0, 1.0, label="Depth Consistency")
     object_index_tolerance: float = param(
-        1e-3, "largest change of the (pixel-mean) object index still counted as the same object", 0.0, 1.0)
+        1e-3, "largest change of the (pixel-mean) object index still counted as the same object", 0.0, 1.0, label="Object Index Tolerance")
     changed_sigma: float = param(
         5.0, "reject pixels whose reprojected mean differs from the new frame's own samples by "
         "more than this many standard errors (+ max_error): moving shadows, lights, "
-        "animated textures; 0 disables (thesis: static scenes only)", 0.0, 100.0)
+        "animated textures; 0 disables (thesis: static scenes only)", 0.0, 100.0, label="Change Rejection")
     background: bool = param(
         True, "reproject background (environment) pixels by direction; off leaves them to be "
-        "rendered fresh")
+        "rendered fresh", label="Reproject Background")
     assume_diffuse: bool = param(
         False, "treat missing glossy/transmission passes as zero (everything diffuse); off "
-        "rejects every pixel whose view changed when they are missing")
+        "rejects every pixel whose view changed when they are missing", label="Assume Diffuse")
     min_valid_fraction: float = param(
         0.01, "if fewer than this fraction of the new frame's pixels receive reprojected "
-        "samples the frame is treated as a camera cut and nothing is reprojected", 0.0, 1.0)
+        "samples the frame is treated as a camera cut and nothing is reprojected", 0.0, 1.0, label="Min Reused Fraction")
     chunk: int = param(
         65536, "source pixels processed per vectorised batch (memory ~ 1 KB per pixel in flight)",
-        256, 4194304)
+        256, 4194304, label="Batch Size")
 
 
 def _params(params) -> Params:

@@ -129,76 +129,76 @@ class Params:
 
     bandwidths: str = param("1.0,1.5,2.0,3.5,4.0",
                            "candidate NL-means strengths k (Sec. 3.4, comma list); more candidates "
-                           "= finer bias/variance choice, proportionally slower")
+                           "= finer bias/variance choice, proportionally slower", label="Bandwidths")
     iterations: int = param(2, "T, iterations of the bias/variance estimate (Eq. 12); 3 gives slightly "
-                              "less noisy error estimates, each costs one more regression pass", 1, 5)
+                              "less noisy error estimates, each costs one more regression pass", 1, 5, label="Iterations")
     radius_small: int = param(5, "r_s, window radius for patches with fine detail (Sec. 3.5); smaller "
-                                "keeps detail, more models = slower", 1, 64)
+                                "keeps detail, more models = slower", 1, 64, label="Detail Radius")
     radius_medium: int = param(10, "r_m, window radius of models filling uncovered pixels (Sec. 3.5)",
-                              1, 64)
+                              1, 64, label="Fill Radius")
     radius_large: int = param(15, "r_l, patch radius and window radius of smooth patches (Sec. 3.5); "
-                                 "larger = fewer models (faster), more smoothing", 1, 64)
+                                 "larger = fewer models (faster), more smoothing", 1, 64, label="Smooth Radius")
     edge_threshold: float = param(0.4, "tau: a pixel whose feature Sobel gradient (Eq. 14) exceeds it "
                                       "is high-frequency; lower = more small windows (slower, sharper)",
-                                 0.0, 1e6)
+                                 0.0, 1e6, label="Edge Threshold")
     detail_min_pixels: int = param(1, "a patch with at least this many high-frequency pixels gets the "
-                                     "small radius r_s (num > tau, Sec. 3.5)", 1, 1 << 20)
+                                     "small radius r_s (num > tau, Sec. 3.5)", 1, 1 << 20, label="Detail Pixels")
     patch_radius: int = param(3, "r, NL-means patch radius (Eq. 4); larger = more robust distances, "
-                                "cost grows with (2r+1)^2", 0, 10)
-    sigma_s: float = param(2.0, "spatial sigma of the feature NL-means (Eq. 3)", 0.0, 100.0)
-    sigma_r: float = param(1.0, "patch-range sigma of the NL-means kernels (Eq. 3)", 1e-6, 100.0)
+                                "cost grows with (2r+1)^2", 0, 10, label="Patch Radius")
+    sigma_s: float = param(2.0, "spatial sigma of the feature NL-means (Eq. 3)", 0.0, 100.0, label="Spatial Sigma")
+    sigma_r: float = param(1.0, "patch-range sigma of the NL-means kernels (Eq. 3)", 1e-6, 100.0, label="Range Sigma")
     sigma_normal: float = param(0.8, "sigma_m of the normal term of the joint feature kernel (Eq. 3)",
-                               1e-6, 100.0)
+                               1e-6, 100.0, label="Normal Sigma")
     sigma_albedo: float = param(0.25, "sigma_m of the albedo term of the joint feature kernel (Eq. 3)",
-                               1e-6, 100.0)
+                               1e-6, 100.0, label="Albedo Sigma")
     sigma_depth: float = param(0.6, "sigma_m of the depth term (depth scaled to the scene's 99th "
-                                   "percentile, Eq. 3)", 1e-6, 100.0)
+                                   "percentile, Eq. 3)", 1e-6, 100.0, label="Depth Sigma")
     feature_k: float = param(0.25, "k of the feature NL-means (Eq. 7); larger = smoother features",
-                            1e-3, 100.0)
+                            1e-3, 100.0, label="Feature Smoothing")
     feature_radius: int = param(4, "search radius of the feature NL-means (2 sigma_s; the paper does "
-                                  "not say); larger = smoother features, cost ~ (2r+1)^2", 0, 16)
+                                  "not say); larger = smoother features, cost ~ (2r+1)^2", 0, 16, label="Search Radius")
     guided_radius: int = param(1, "window radius of the guided filters (Eq. 6-8; not given in the "
-                                 "paper); larger = smoother guide colour M, more bias", 0, 32)
+                                 "paper); larger = smoother guide colour M, more bias", 0, 32, label="Guided Filter Radius")
     guided_eps: float = param(0.001, "regularisation of the guided filter (Eq. 6, paper 0.001); larger "
-                                    "= flatter a, more smoothing", 1e-12, 1e3)
+                                    "= flatter a, more smoothing", 1e-12, 1e3, label="Guided Filter Epsilon")
     regression_sigma_s: float = param(0.0, "spatial sigma of the regression weights NLM(M,k,false); 0 "
-                                          "= none (the window bounds the support)", 0.0, 100.0)
+                                          "= none (the window bounds the support)", 0.0, 100.0, label="Regression Spatial Sigma")
     regress_guide: bool = param(False, "fit the guide colour M (Eq. 8) instead of the input colour "
                                       "(Eq. 2); less variance, but M's blur at colour-only edges is "
-                                      "bias the error estimate cannot see")
+                                      "bias the error estimate cannot see", label="Fit Guide Colour")
     bias_noise_correction: bool = param(False, "subtract the pilot's noise from the Eq. 11 bias "
                                               "estimate (not in the paper): flat noisy regions then "
-                                              "choose large k", None, None)
+                                              "choose large k", None, None, label="Bias Noise Correction")
     ridge: float = param(1e-3, "Tikhonov regularisation of the gradient terms relative to the total "
                               "weight (guards singular systems); larger = more stable, more bias",
-                        1e-9, 1.0)
-    nlm_eps: float = param(1e-10, "epsilon of the NL-means distance (Eq. 5)", 1e-300, 1.0)
+                        1e-9, 1.0, label="Ridge")
+    nlm_eps: float = param(1e-10, "epsilon of the NL-means distance (Eq. 5)", 1e-300, 1.0, label="Distance Epsilon")
     coverage_weight: float = param(0.01, "a pixel counts as covered when some model's regression "
                                         "weight for it at the smallest k reaches this; uncovered "
                                         "pixels get r_m models (Sec. 3.5). Higher = more models, "
-                                        "slower, fewer extrapolated predictions", 0.0, 1.0)
+                                        "slower, fewer extrapolated predictions", 0.0, 1.0, label="Coverage Weight")
     clamp_predictions: bool = param(True, "clip each model's predictions to the range of the input "
                                           "colours it fitted (weight >= coverage_weight): no "
                                           "extrapolated overshoot, no negative output from "
-                                          "non-negative input; off = the paper's fit as is")
+                                          "non-negative input; off = the paper's fit as is", label="Clamp Predictions")
     detail_cover: bool = param(True, "detailed patches get r_s windows on every detail pixel (Sec. "
                                      "3.5, Fig. 4); off: one r_s window at the patch centre (fewer "
-                                     "models, faster, edges off the centre get r_m windows)")
+                                     "models, faster, edges off the centre get r_m windows)", label="Detail Coverage")
     fill_rounds: int = param(4, "rounds of r_m models for uncovered pixels (Sec. 3.5); 0 = only the "
-                               "geometric cover", 0, 16)
+                               "geometric cover", 0, 16, label="Fill Rounds")
     input_blend: str = param("mse", "how each pixel's own input enters Eq. 13: mse = inverse-MSE "
                                     "blend of the models' average (its Eq. 12 error) and the "
                                     "input (its variance), derived, no constant; fixed = the "
                                     "input as one more model at weight input_weight",
-                            choices=("mse", "fixed"))
+                            choices=("mse", "fixed"), label="Input Blend")
     input_weight: float = param(0.02, "with input_blend = fixed: weight of each pixel's own input "
                                      "colour in the Eq. 13 average (not in the paper): pixels that the models weight weakly (their "
                                      "predictions there are extrapolations) lean on their unbiased "
-                                     "input; 0 = pure Eq. 13, higher = closer to the input", 0.0, 1.0)
+                                     "input; 0 = pure Eq. 13, higher = closer to the input", 0.0, 1.0, label="Input Weight")
     chunk_centers: int = param(32, "model centres processed together (at most CHUNK_PIXELS window "
                                   "pixels per chunk); larger = faster, more memory; results do "
                                   "not depend on it",
-                              1, 4096)
+                              1, 4096, label="Batch Size")
 
 
 def parse_bandwidths(text) -> np.ndarray:

@@ -105,24 +105,24 @@ class Params:
 
     lam: float = param(
         0.98, "forgetting factor lambda of Eq. 6 (paper: 0.98): weight of frame t-j is lambda^j; "
-        "closer to 1 averages more frames (less noise, more lag on changes)", 0.5, 1.0)
+        "closer to 1 averages more frames (less noise, more lag on changes)", 0.5, 1.0, label="Forgetting Factor")
     delta: float = param(
         1e-3, "RLS initial confidence delta, P(0) = I/delta (paper Sec. 7: 0.001); larger keeps "
-        "new models near (y, 0) longer", 1e-9, 1.0)
+        "new models near (y, 0) longer", 1e-9, 1.0, label="Initial Confidence")
     search_radius: int = param(
         3, "half width of the window searched for the best previous model (paper: 'a search "
-        "window', no size); larger follows faster motion, costs (2r+1)^2 tests per pixel", 0, 16)
+        "window', no size); larger follows faster motion, costs (2r+1)^2 tests per pixel", 0, 16, label="Search Radius")
     position_tolerance: float = param(
         0.05, "carried models must come from within this fraction of the pixel's depth of its "
-        "world position (0 = no gate, the literal paper); smaller restarts more models", 0.0, 10.0)
+        "world position (0 = no gate, the literal paper); smaller restarts more models", 0.0, 10.0, label="Position Tolerance")
     reset_sigma: float = param(
         4.0, "restart a model whose prediction misses by more than this many standard "
-        "deviations (sudden lighting changes); 0 = never (the literal paper)", 0.0, 100.0)
+        "deviations (sudden lighting changes); 0 = never (the literal paper)", 0.0, 100.0, label="Reset Threshold")
     spatial: bool = param(
         True, "filter each frame with static LP first and feed its output to Eq. 6 (paper); off "
-        "feeds the raw pixel means (faster, noisier)")
+        "feeds the raw pixel means (faster, noisier)", label="Spatial Filter First")
     chunk: int = param(
-        65536, "pixels processed per vectorised batch (memory ~ 0.5 KB per pixel in flight)", 256, 4194304)
+        65536, "pixels processed per vectorised batch (memory ~ 0.5 KB per pixel in flight)", 256, 4194304, label="Batch Size")
 
 
 @dataclass

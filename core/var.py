@@ -130,21 +130,21 @@ class Params:
     min_spp: int = param(
         4, "Samples every pixel gets before adapting (Alg. 1 min_spp); also the floor "
         "min_spp/max_spp of each pixel's probability. Higher = safer variance "
-        "estimates and faster convergence everywhere, less adaptivity", 1, 4096)
+        "estimates and faster convergence everywhere, less adaptivity", 1, 4096, label="Min Samples")
     max_spp: int = param(
         32, "Iterations of the falling threshold (Alg. 1 max_spp); at most this many "
         "samples per pixel before probabilities are fixed. Higher = slower, "
-        "better-informed probabilities", 1, 65536)
+        "better-informed probabilities", 1, 65536, label="Max Samples")
     epsilon: float = param(
         1e-3, "Eq. 12 epsilon (luminance units): keeps dark, noiseless pixels sampled. "
-        "Larger = fewer samples to dark pixels", 1e-9, 10.0)
+        "Larger = fewer samples to dark pixels", 1e-9, 10.0, label="Error Epsilon")
     epsilon_inside_sqrt: bool = param(
         False, "Use Algorithm 1's form sqrt(Var + eps) / (L + eps) instead of Eq. 12's "
         "(sqrt(Var) + eps) / (L + eps); the square-root form favours dark pixels "
-        "much more strongly")
+        "much more strongly", label="Epsilon Inside Root")
     seed: int = param(
         0, "Seed of the per-pixel random draws after the threshold phase "
-        "(combined with the run's --seed); same seed = same sample maps", 0, 2 ** 31 - 1)
+        "(combined with the run's --seed); same seed = same sample maps", 0, 2 ** 31 - 1, label="Seed")
 
 
 # ------------------------------------------------------------------- pieces

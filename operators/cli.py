@@ -228,9 +228,20 @@ def _render_frame(args, scene, vl, opts, cluster) -> int:
     interrupted = flag.set
     if interrupted:
         print("[cycles-adaptive] interrupted: writing the partial result", file=sys.stderr, flush=True)
+    t_write = time.perf_counter()
     summary = job.finish(partial=interrupted)
+    if not args.quiet:
+        print(f"[cycles-adaptive] {_written(summary, time.perf_counter() - t_write)}", flush=True)
     _report(summary, args.json)
     return EXIT_INTERRUPT if interrupted else EXIT_OK
+
+
+def _written(summary: dict, seconds: float) -> str:
+    """The batch log's last progress line: what was written, in how long
+    (the final reconstruction included when it had not run yet)."""
+    outs = [p for p in (summary.get("out"), summary.get("preview")) if p]
+    what = " and ".join(outs) if outs else "nothing (no output path)"
+    return f"done: wrote {what} in {seconds:.2f} s"
 
 
 class _SigintFlag:

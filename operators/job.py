@@ -33,7 +33,7 @@ import numpy as np
 from ..core import io as imageio
 from ..core import methods, metrics
 from ..core.method import consistency_guard, params_from_dict
-from ..core.pipeline import AdaptiveRun, Options, option_fields
+from ..core.pipeline import AdaptiveRun, Options, Progress, Work, option_fields
 from ..core.resources import peak_rss_mb
 from ..core.storage import buffers_from_passes, buffers_to_passes
 
@@ -244,6 +244,22 @@ def write_output(output: Output, path: str) -> None:
     imageio.write_layers(path, output.passes, layer=output.layer, attributes=output.attributes)
 
 
+def estimated_relmse(image: np.ndarray, error: np.ndarray) -> float:
+    """The relMSE the run's own error estimate predicts (no reference needed):
+    mean over pixels and RGB of ``error / (image^2 + 0.01)``, i.e.
+    :func:`core.metrics.relmse` with the image standing in for the reference
+    and the estimated squared error (averaged over RGB) for every channel's.
+    Non-finite terms count as 0 (pixels without an estimate); 0.0 for an
+    empty image.  For the panel's summary and the CLI's JSON."""
+    img = np.asarray(image, np.float64)[..., :3]
+    err = np.asarray(error, np.float64)
+    if img.size == 0:
+        return 0.0
+    with np.errstate(invalid="ignore", over="ignore"):
+        e = err[..., None] / (img * img + metrics.REL_EPS)
+    return float(np.where(np.isfinite(e), e, 0.0).mean())
+
+
 def _info_fields(summary: dict, info: dict, prefix: str = "") -> None:
     for k, v in info.items():
         if isinstance(v, (int, float, str, bool)):
@@ -302,6 +318,7 @@ class RenderJob:
         self.executor_factory = executor_factory or ex.CyclesExecutor
         self.camera = None         # camera matrices of the rendered frame
         self.result = None         # the final MethodResult, once output() ran
+        self._final: Work | None = None  # the final reconstruction (reconstruct_work)
         self.t0 = time.perf_counter()
         self.summary: dict | None = None
         self._output: Output | None = None
@@ -321,17 +338,56 @@ class RenderJob:
                 except ValueError as exc:
                     raise JobError(str(exc)) from None
             yield from self.run.steps()
+        # the scene is restored; the final reconstruction is pure numpy, so a
+        # consumer may run it on a worker thread (the UI's stepper does)
+        run = self.run
+        work = self.reconstruct_work()
+        fraction = min(1.0, run.samples_rendered / max(run.budget, 1))
+        yield Progress("reconstruct", run.iteration, fraction, work.label, work=work)
+        if self.out:  # finish() writes next: announced for the batch log and the status bar
+            yield Progress("write", run.iteration, fraction, f"writing {self.out}")
 
-    def output(self, partial: bool = False) -> Output:
+    def reconstruct_work(self) -> Work:
+        """The final reconstruction (``AdaptiveRun.reconstruct`` with this
+        job's reconstructor, through the consistency guard) as one
+        :class:`core.pipeline.Work`: computed once, by whoever runs it first
+        (the UI's worker thread, or :meth:`output` inline)."""
+        if self._final is None:
+            run, rec = self.run, self.reconstructor
+            self._final = Work(lambda: run.reconstruct(rec), f"reconstructing ({self.options.method})")
+        return self._final
+
+    def _result(self, reconstruct: bool):
+        """(MethodResult, reconstructed) for the output: the final
+        reconstruction when it has completed or ``reconstruct`` asks for it
+        (computed inline then), else the sample mean with the variance of the
+        mean as its error: what a cancel writes at once instead of waiting
+        for a reconstruction (tens of seconds at 1920x1080); every sample and
+        pass is in the EXR, so ``denoise`` (or ``--resume`` from the kept
+        checkpoint) reconstructs it later.  The error there is the plain
+        s^2 / n (``Buffers.variance_of_mean``), not the calibrated, pooled
+        variance the methods read, which alone takes ~10 s at 1920x1080
+        (docs/notes/responsive-ui.md)."""
+        final = self._final
+        if reconstruct or (final is not None and final.done):
+            return self.reconstruct_work().result(), True
+        from ..core import uniform
+        buf = self.run.buffers
+        return uniform.denoise(buf.color.mean, buf.variance_of_mean()), False
+
+    def output(self, partial: bool = False, reconstruct: bool = True) -> Output:
         """Reconstruct from what was rendered: the passes, attributes and
         summary, nothing written.  Computed once (a reconstruction may carry
-        state, e.g. LP's temporal one); later calls return the same Output."""
+        state, e.g. LP's temporal one); later calls return the same Output.
+        ``reconstruct=False`` (a cancel from the UI) takes the sample mean
+        unless the final reconstruction has already completed (see
+        :meth:`_result`)."""
         if self._output is not None:
             return self._output
         run = self.run
         if run is None or run.buffers is None:
             raise JobError("nothing was rendered")
-        result = run.reconstruct(self.reconstructor)
+        result, reconstructed = self._result(reconstruct)
         self.result = result
         image = np.where(np.isfinite(result.image), result.image, 0.0)
         error = np.where(np.isfinite(result.error), result.error, 0.0)
@@ -347,7 +403,8 @@ class RenderJob:
                  "cycles_adaptive/method": self.options.method,
                  "cycles_adaptive/options": json.dumps(_jsonable(vars(self.options))),
                  "cycles_adaptive/blender": bpy.app.version_string,
-                 "cycles_adaptive/partial": str(bool(partial)).lower()}
+                 "cycles_adaptive/partial": str(bool(partial)).lower(),
+                 "cycles_adaptive/reconstructed": str(bool(reconstructed)).lower()}
         h, w = run.height, run.width
         summary = {
             "method": self.options.method,
@@ -368,6 +425,8 @@ class RenderJob:
             "out": self.out,
             "preview": preview_path(self.out) if self.preview else None,
             "partial": bool(partial),
+            "reconstructed": bool(reconstructed),
+            "estimated_relmse": estimated_relmse(image, error),
             "time_limited": bool(run.time_limited),
             "max_seconds": self.options.max_seconds,
             "sampling_seconds": run.sampling_seconds,
@@ -384,10 +443,12 @@ class RenderJob:
         self.summary = summary
         return self._output
 
-    def finish(self, partial: bool = False) -> dict:
+    def finish(self, partial: bool = False, reconstruct: bool = True) -> dict:
         """Reconstruct from what was rendered and, when the job has an
-        ``out``, write the EXR, the PNG preview and drop the checkpoint."""
-        out = self.output(partial)
+        ``out``, write the EXR, the PNG preview and drop the checkpoint
+        (``reconstruct``: see :meth:`output`; the checkpoint is kept after a
+        partial run)."""
+        out = self.output(partial, reconstruct)
         if self.out is None:
             return out.summary
         run = self.run
@@ -635,12 +696,14 @@ class FramesJob:
         """The run of the frame in progress (for the operator's stepper)."""
         return None if self.job is None else self.job.run
 
-    def finish(self, partial: bool = False) -> dict:
+    def finish(self, partial: bool = False, reconstruct: bool = True) -> dict:
         """After the last frame: the range summary.  On a cancel: write the
-        frame in progress as a partial result, then the summary."""
+        frame in progress as a partial result (``reconstruct``: see
+        :meth:`RenderJob.output`), then the summary."""
         if partial and self.job is not None and self.job.run is not None and \
+                self.job.run.buffers is not None and \
                 (not self.summaries or self.summaries[-1]["out"] != self.job.out):
-            self.summaries.append(self.job.finish(partial=True))
+            self.summaries.append(self.job.finish(partial=True, reconstruct=reconstruct))
         summ = self.summary()
         summ["out"] = summ["outs"][-1] if summ["outs"] else ""
         return summ
@@ -655,6 +718,8 @@ class FramesJob:
                if s else 0.0, "outs": [x["out"] for x in s]}
         if s and all("relmse" in x for x in s):
             out["relmse_mean"] = float(np.mean([x["relmse"] for x in s]))
+        if s and all("estimated_relmse" in x for x in s):
+            out["estimated_relmse"] = float(np.mean([x["estimated_relmse"] for x in s]))
         return out
 
 

@@ -17,6 +17,32 @@ from .stepper import Stepper
 
 STEP_SECONDS = 0.05  # work per timer tick before handing control back to the UI
 
+#: status-bar words of the loop's stages (``core.pipeline.Progress.stage``)
+STAGE_WORDS = {"initial": "Rendering", "adapt": "Adapting", "plan": "Planning", "render": "Rendering",
+               "checkpoint": "Saving checkpoint", "done": "Sampling done", "reconstruct": "Reconstructing"}
+
+
+def status_line(stepper) -> str:
+    """The status bar's text: percentage of the budget, the stage in words
+    and the loop's message (with seconds so far while a computation runs)."""
+    word = STAGE_WORDS.get(stepper.stage, "Working")
+    return f"Cycles Adaptive: {100 * stepper.fraction:.0f}% {word}: {stepper.message}  (Esc cancels)"
+
+
+def store_summary(settings, summary: dict, cancelled: bool) -> None:
+    """Keep a run's summary on the scene's settings for the panel: mean spp,
+    seconds, estimated relMSE (the run's own error estimate, no reference),
+    whether it was reconstructed, and a one-line status."""
+    settings.last_spp = float(summary.get("spp_mean", 0.0))
+    settings.last_seconds = float(summary.get("total_seconds", 0.0))
+    settings.last_error = float(summary.get("estimated_relmse", 0.0))
+    settings.last_reconstructed = bool(summary.get("reconstructed", True))
+    settings.last_method = str(summary.get("method", ""))
+    settings.has_result = True
+    what = "Cancelled" if cancelled else "Done"
+    note = "" if settings.last_reconstructed else " (not reconstructed: sample mean)"
+    settings.status = f"{what}: {settings.last_spp:.1f} spp{note}, wrote {summary.get('out')}"
+
 
 def _show(job):
     from ..addon.display import show_result
@@ -52,8 +78,6 @@ class CYCLESADAPTIVE_OT_render(bpy.types.Operator):
             for _ in job.steps():
                 pass
             summary = job.finish()
-            if "frames" in summary:
-                summary.setdefault("spp_mean", 0.0)
         except JobError as exc:
             self.report({"ERROR"}, str(exc))
             return {"CANCELLED"}
@@ -62,7 +86,7 @@ class CYCLESADAPTIVE_OT_render(bpy.types.Operator):
             traceback.print_exc()
             return {"CANCELLED"}
         _show(job)
-        scene.cycles_adaptive.status = f"Done: {summary['spp_mean']:.1f} spp, wrote {summary['out']}"
+        store_summary(scene.cycles_adaptive, summary, cancelled=False)
         self.report({"INFO"}, scene.cycles_adaptive.status)
         return {"FINISHED"}
 
@@ -85,7 +109,7 @@ class CYCLESADAPTIVE_OT_render(bpy.types.Operator):
         return {"RUNNING_MODAL"}
 
     def modal(self, context, event):
-        if event.type == "ESC":
+        if event.type == "ESC" and event.value == "PRESS":
             return self._end(context, cancelled=True)
         if event.type != "TIMER":
             return {"PASS_THROUGH"}
@@ -100,7 +124,8 @@ class CYCLESADAPTIVE_OT_render(bpy.types.Operator):
         if ended:
             return self._end(context, cancelled=False)
         context.window_manager.progress_update(int(1000 * s.progress))
-        context.workspace.status_text_set(f"Cycles Adaptive: {100 * s.progress:.0f}% {s.status}")
+        if context.workspace:
+            context.workspace.status_text_set(status_line(self._stepper))
         for area in context.screen.areas if context.screen else ():
             if area.type == "PROPERTIES":
                 area.tag_redraw()
@@ -120,8 +145,7 @@ class CYCLESADAPTIVE_OT_render(bpy.types.Operator):
             summary = self._stepper.cancel() if cancelled else self._stepper.summary
             if summary is not None:
                 _show(self._job)
-                what = "Cancelled" if cancelled else "Done"
-                s.status = f"{what}: {summary['spp_mean']:.1f} spp, wrote {summary['out']}"
+                store_summary(s, summary, cancelled)
             else:
                 s.status = "Cancelled before any sample was rendered"
         except Exception as exc:

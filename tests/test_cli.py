@@ -50,7 +50,13 @@ def test_render_json_has_the_contract_fields(tmp_path):
     assert abs(res["spp_mean"] - 6) <= 0.06
     assert res["relmse"] > 0 and os.path.isfile(out) and os.path.isfile(str(tmp_path / "o.png"))
     assert not os.path.exists(out + ".checkpoint.npz")
-    assert "[cycles-adaptive]" in r.stdout  # batch progress lines
+    assert "[cycles-adaptive]" in r.stdout  # batch progress lines, for every stage:
+    log = [line for line in r.stdout.splitlines() if line.startswith("[cycles-adaptive]")]
+    for words in ("adapting (var)", "sampling done", "reconstructing (var)", f"writing {out}",
+                  f"done: wrote {out} and {tmp_path / 'o.png'}"):
+        assert any(words in line for line in log), (words, log)
+    assert log[-1].startswith("[cycles-adaptive] done: wrote")
+    assert res["reconstructed"] and res["estimated_relmse"] >= 0
     from cycles_adaptive.core import io as imageio
     passes, meta = imageio.read_layers(out)
     for p in ("Combined", "Noisy", "Variance", "M2", "Samples", "Groups", "Error", "Feat_alpha"):

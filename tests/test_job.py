@@ -49,3 +49,158 @@ def test_a_failing_render_restores_the_scene(tmp_path):
             pass
     assert _settings(scene) == before
     assert not os.path.exists(str(tmp_path / "x.exr"))
+
+
+# ------------------------------------------------------- responsive stepping
+import threading  # noqa: E402
+
+import numpy as np  # noqa: E402
+
+from cycles_adaptive.addon import executor as ex  # noqa: E402
+from cycles_adaptive.core import io as imageio  # noqa: E402
+from cycles_adaptive.core import lp, metrics  # noqa: E402
+from cycles_adaptive.operators import job as job_mod  # noqa: E402
+from cycles_adaptive.operators.job import estimated_relmse  # noqa: E402
+
+
+def _on_main():
+    assert threading.current_thread() is threading.main_thread(), "bpy called off the main thread"
+
+
+class MainThreadExecutor(ex.CyclesExecutor):
+    """The Cycles executor, asserting every render (and scene change) runs on
+    the main thread."""
+
+    def __enter__(self):
+        _on_main()
+        return super().__enter__()
+
+    def __exit__(self, *exc):
+        _on_main()
+        return super().__exit__(*exc)
+
+    def render(self, task):
+        _on_main()
+        return super().render(task)
+
+
+class GatedLP:
+    """LP (every member of the Method contract delegated) whose
+    reconstruction waits for ``gate`` and records the thread it ran on."""
+
+    NAME, PASSES, Params = lp.NAME, lp.PASSES, lp.Params
+    ADAPTIVE, SAMPLER_USES_RESULT = lp.ADAPTIVE, lp.SAMPLER_USES_RESULT
+
+    def __init__(self):
+        self.gate = threading.Event()
+        self.threads = []
+
+    def reconstruct(self, buf, params=None):
+        self.threads.append(threading.current_thread())
+        self.gate.wait(120)
+        return lp.reconstruct(buf, params)
+
+    def sample_map(self, buf, result, budget, params=None, state=None):
+        return lp.sample_map(buf, result, budget, params, state)
+
+
+class Threads:
+    def __init__(self):
+        self.threads = []
+
+    def __call__(self, fn):
+        from cycles_adaptive.operators.stepper import start_thread
+        self.threads.append(start_thread(fn))
+
+    def join(self):
+        for t in self.threads:
+            t.join(300)  # a guard against a hang, not a speed bound
+            assert not t.is_alive()
+
+
+@pytest.fixture
+def main_thread_outputs(monkeypatch):
+    """Assert that the outputs (EXR, PNG through bpy) are written on the main thread."""
+    for mod, name in ((job_mod, "write_output"), (ex, "write_preview")):
+        real = getattr(mod, name)
+
+        def checked(*a, _real=real, **kw):
+            _on_main()
+            return _real(*a, **kw)
+        monkeypatch.setattr(mod, name, checked)
+
+
+def _gated_job(tmp_path, scene, method, name="g.exr"):
+    opts = Options(method="lp", spp=8, initial_spp=2, subsets=2, iterations=2, frame=scene.frame_current,
+                   task_cost=64)
+    return RenderJob(scene, bpy.context.view_layer, opts, str(tmp_path / name), method=method,
+                     executor_factory=MainThreadExecutor)
+
+
+def test_esc_during_adaptation_returns_without_waiting_and_writes_the_sample_mean(tmp_path,
+                                                                                 main_thread_outputs):
+    scene = build_scene(24, 16)
+    before = _settings(scene)
+    method, threads = GatedLP(), Threads()
+    job = _gated_job(tmp_path, scene, method)
+    st = Stepper(job, slice_seconds=60.0, start=threads)  # only a Work ends a slice early
+    assert st.step() is False and st.stage == "adapt" and st.pending is not None
+    assert st.step() is False  # still adapting: the UI gets control back at once
+    summary = st.cancel()
+    pending_done = method.gate.is_set()
+    method.gate.set()
+    threads.join()
+    assert not pending_done and _settings(scene) == before
+    assert summary["partial"] and not summary["reconstructed"] and 0 < summary["spp_mean"] < 8
+    assert np.isfinite(summary["estimated_relmse"]) and summary["estimated_relmse"] >= 0
+    passes, meta = imageio.read_layers(job.out)
+    assert np.array_equal(passes["Combined"][..., :3], passes["Noisy"][..., :3])  # the sample mean
+    assert os.path.isfile(job.out + ".checkpoint.npz")  # kept for --resume
+    assert all(t is not threading.main_thread() for t in method.threads)
+
+
+def test_stepped_run_reconstructs_off_the_main_thread_and_matches_an_inline_run(tmp_path,
+                                                                               main_thread_outputs):
+    results = []
+    for name, stepped in (("inline.exr", False), ("stepped.exr", True)):
+        scene = build_scene(24, 16)
+        method = GatedLP()
+        method.gate.set()
+        job = _gated_job(tmp_path, scene, method, name)
+        if stepped:
+            threads = Threads()
+            st = Stepper(job, slice_seconds=0.0, start=threads)
+            stages = []
+            while not st.step():
+                stages.append(st.stage)
+                threads.join()
+            summary = st.summary
+            assert "adapt" in stages and "reconstruct" in stages and "write" in stages
+            assert method.threads and all(t is not threading.main_thread() for t in method.threads)
+        else:
+            for _ in job.steps():
+                pass
+            summary = job.finish()
+            assert all(t is threading.main_thread() for t in method.threads)
+        assert summary["reconstructed"] and not summary["partial"]
+        results.append(imageio.read_layers(job.out)[0])
+    a, b = results
+    for p in ("Combined", "Samples", "Error", "Noisy"):
+        assert np.array_equal(a[p], b[p]), p
+
+
+def test_estimated_relmse_is_relmse_when_the_error_estimate_is_exact():
+    rng = np.random.default_rng(3)
+    ref = rng.uniform(0, 2, (6, 5, 3))
+    d = rng.normal(0, 0.3, (6, 5))
+    x = ref + d[..., None]  # the same error in every channel
+    assert estimated_relmse(ref, d * d) == pytest.approx(metrics.relmse(x, ref), rel=1e-12)
+
+
+def test_estimated_relmse_is_finite_for_hostile_input():
+    img = np.array([[[np.nan, 1, np.inf], [0, 0, 0]]])
+    err = np.array([[np.inf, np.nan]])
+    v = estimated_relmse(img, err)
+    assert np.isfinite(v) and v >= 0
+    assert estimated_relmse(np.zeros((0, 0, 3)), np.zeros((0, 0))) == 0.0
+    assert estimated_relmse(np.zeros((2, 2, 3)), np.full((2, 2), 1e300)) == pytest.approx(1e302)
