@@ -79,7 +79,7 @@ class Options:
                             label="Iterations")
     frame: int = param(0, "frame to render", label="Frame", cli=False, ui=False)
     seed: int = param(0, "Cycles seed of the run", 0, None, label="Seed")
-    min_task_size: int = param(8, "smallest region render side in pixels; smaller follows the "
+    min_task_size: int = param(16, "smallest region render side in pixels; smaller follows the "
                                "sample map more closely, more renders", 1, None, label="Min Region Size")
     #: fixed cost of one region render in pixel-samples (see regions.plan)
     task_cost: float = param(regions.DEFAULT_TASK_COST, "fixed cost of one region render in "
@@ -493,19 +493,28 @@ class AdaptiveRun:
             state = copy.deepcopy(self.method_state)
             counts = np.asarray(self.method.sample_map(self.buffers, result, max(limit, 0), self.params,
                                                        state), np.int64)
-            # pixel-exact plan when it needs few renders, else exact at block
-            # resolution (the tasks past the limit are dropped below)
-            plan = regions.plan(counts, frame=self.options.frame, min_size=1, task_cost=0.0)
-            if plan.n_tasks > MAX_EXACT_TASKS:
-                plan = regions.plan(counts, frame=self.options.frame, min_size=self.options.min_task_size,
-                                    task_cost=0.0)
-            best = (counts, plan, state)
+            # exact plans at block sides 1, 2, 4 .. min_task_size: the one that
+            # keeps the most samples within the limit (tasks past it dropped),
+            # preferring plans of at most MAX_EXACT_TASKS renders
+            best = None
+            size = 1
+            while True:
+                plan = regions.plan(counts, frame=self.options.frame, min_size=size, task_cost=0.0)
+                kept = _within(plan, limit)
+                got = int(kept[1].sum())
+                key = (0 < len(kept[0]) <= MAX_EXACT_TASKS and got > 0, got)
+                if best is None or key > best[0]:
+                    best = (key, kept)
+                if size >= self.options.min_task_size:
+                    break
+                size = min(2 * size, self.options.min_task_size)
+            tasks, covered = best[1]
+            self.method_state = state
+            self.overshoot += max(0, int(covered.sum()) - int(counts.sum()))
+            return tasks, covered, counts
         counts, plan, state = best
         self.method_state = state
-        tasks, covered = list(plan.tasks), plan.covered.copy()
-        while tasks and int(covered.sum()) > limit:
-            t = tasks.pop()
-            covered[t.y0:t.y1, t.x0:t.x1] -= t.samples
+        tasks, covered = _within(plan, limit)
         self.overshoot += max(0, int(covered.sum()) - int(counts.sum()))
         return tasks, covered, counts
 
@@ -553,6 +562,16 @@ class AdaptiveRun:
         self.overshoot = int(meta["overshoot"])
         self.history = list(meta.get("history", []))
         self.method_state = state
+
+
+def _within(plan, limit: int):
+    """(tasks, covered) of a plan with its last tasks dropped until it covers
+    at most ``limit`` samples."""
+    tasks, covered = list(plan.tasks), plan.covered.copy()
+    while tasks and int(covered.sum()) > limit:
+        t = tasks.pop()
+        covered[t.y0:t.y1, t.x0:t.x1] -= t.samples
+    return tasks, covered
 
 
 def subset_tasks(width: int, height: int, spp: int, subsets: int, frame: int = 0,

@@ -292,7 +292,7 @@ def test_adaptation_is_yielded_as_work_a_thread_may_run():
 
     a, na = run_with(False)
     b, nb = run_with(True)
-    assert na == nb == a.iteration >= 2
+    assert na == nb >= a.iteration >= 2  # the last iteration may take top-up rounds
     np.testing.assert_array_equal(a.buffers.n, b.buffers.n)
     np.testing.assert_array_equal(a.buffers.color.mean, b.buffers.color.mean)
 
