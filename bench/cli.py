@@ -18,6 +18,7 @@ from typing import Callable, NamedTuple
 
 from ..core import methods as methods_registry
 from . import references as refs
+from . import sequence
 from .report import write_outputs
 from .session import Session
 
@@ -228,4 +229,6 @@ COMMANDS = (
             "and OIDN", add_arguments, main),
     Command("references", "render (and cache) the high-spp references of the sample scenes",
             add_reference_arguments, references_main),
+    Command("bench-sequence", "per-frame relMSE and temporal error (flicker) of animated scenes, ours and "
+            "the peers", sequence.add_arguments, sequence.main),
 )

@@ -18,7 +18,7 @@ oiio = pytest.importorskip("OpenImageIO")
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 BLENDS = os.path.join(ROOT, "sample_blends")
 BUILD = os.path.join(BLENDS, "build_scenes.py")
-SCENES = ("cornell", "dof", "soft_shadows", "glossy", "motion_blur", "animated")
+SCENES = ("cornell", "dof", "soft_shadows", "glossy", "motion_blur", "animated", "courtyard")
 
 
 def blend_path(name, folder=BLENDS):
@@ -91,7 +91,7 @@ def test_scene_common_settings(name):
     assert not scene.cycles.use_denoising
     assert scene.cycles.seed == 0
     assert scene.render.resolution_percentage == 100
-    assert (scene.render.resolution_x, scene.render.resolution_y) in ((128, 128), (128, 96))
+    assert (scene.render.resolution_x, scene.render.resolution_y) in ((128, 128), (128, 96), (640, 400))
     assert scene.view_settings.view_transform == "Standard"
     assert not scene.use_nodes  # no compositing nodes
     camera_object(scene)
@@ -167,6 +167,24 @@ def test_animated_camera_moves_every_frame():
     mats = [matrix_at(scene, cam, f) for f in range(scene.frame_start, scene.frame_end + 1)]
     for a, b in zip(mats, mats[1:]):
         assert not np.allclose(a, b), "camera does not move between two frames"
+    assert glossy_materials(), "expected some glossy objects"
+
+
+def test_courtyard_is_a_production_scale_shot():
+    """>= 24 frames at >= 0.25 MP, a moving camera and a moving object every frame."""
+    scene = open_blend(blend_path("courtyard"))
+    assert scene.frame_end - scene.frame_start + 1 >= 24
+    assert scene.render.resolution_x * scene.render.resolution_y >= 250_000
+    cam = camera_object(scene)
+    frames = range(scene.frame_start, scene.frame_end + 1)
+    mats = [matrix_at(scene, cam, f) for f in frames]
+    for a, b in zip(mats, mats[1:]):
+        assert not np.allclose(a, b), "camera does not move between two frames"
+    others = [o for o in scene.objects if o.type == "MESH" and o.animation_data is not None]
+    assert others, "no animated object"
+    for o in others[:1]:
+        pos = [matrix_at(scene, o, f) for f in frames]
+        assert any(not np.allclose(a, b) for a, b in zip(pos, pos[1:]))
     assert glossy_materials(), "expected some glossy objects"
 
 
