@@ -42,7 +42,7 @@ from dataclasses import asdict, dataclass, field, fields
 import numpy as np
 
 from . import maps, methods, regions, storage, variance
-from .buffers import Buffers, Stat
+from .buffers import Buffers
 from .method import Method, allocate, check_ranges, consistency_guard, param, params_from_dict
 
 TOP_UP = 3        # planning rounds the last iteration may add to spend what rounding left

@@ -2,7 +2,6 @@ import numpy as np
 import pytest
 
 from core import maps, regions
-from core.filters import box_mean
 from core.pipeline import AdaptiveRun, Options
 from conftest import FakeExecutor
 
