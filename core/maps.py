@@ -109,3 +109,16 @@ def pool_to_blocks(counts: np.ndarray, size: int) -> np.ndarray:
         rest = np.where(up(frac > 0) & (up(base) == up(s // a)), up(frac), 0.0)
         out += allocate(rest, left)
     return out
+
+
+def cap_share(counts: np.ndarray, share: float) -> np.ndarray:
+    """A map with no pixel above ``share`` times its mean (at least 1), the
+    excess spread over the other pixels in proportion to the map (same total
+    when possible); ``share <= 0`` or an empty map returns it unchanged."""
+    total = int(counts.sum())
+    if share <= 0 or total <= 0:
+        return counts
+    cap = max(1, int(np.ceil(share * total / counts.size)))
+    if counts.max() <= cap:
+        return counts
+    return allocate(counts.astype(np.float64), total, cap=np.full(counts.shape, cap, np.int64))

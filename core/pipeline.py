@@ -43,7 +43,7 @@ import numpy as np
 
 from . import maps, methods, regions, storage, variance
 from .buffers import Buffers
-from .method import Method, allocate, check_ranges, consistency_guard, param, params_from_dict
+from .method import Method, check_ranges, consistency_guard, param, params_from_dict
 
 TOP_UP = 3        # planning rounds the last iteration may add to spend what rounding left
 MAX_BEYOND_MAP = 0.1  # most samples an iteration's plan may add beyond the map (share of its samples)
@@ -358,10 +358,7 @@ class AdaptiveRun:
         for s, task in enumerate(tasks):
             if s and self._time_up():  # one subset at least, so there is an image
                 break
-            t0 = time.perf_counter()
-            color, feats = self.executor.render(task)
-            self._count_render(time.perf_counter() - t0)
-            self._merge(task, color, feats)
+            color, _ = self._render_task(task)
             meter.add(color, task.samples)
             last = task
             yield Progress("initial", 0, self._fraction(),
@@ -383,32 +380,21 @@ class AdaptiveRun:
 
     def _planned(self, counts: np.ndarray):
         """The cheapest plan at ``Options.task_cost`` whose samples beyond the
-        map stay within ``MAX_BEYOND_MAP`` of its samples: the task cost is
-        quartered until they do (at 0 the plan is exact at block scale)."""
-        cost = float(self.options.task_cost)
-        while True:
-            plan = regions.plan(counts, frame=self.options.frame, min_size=self.options.min_task_size,
-                                task_cost=cost)
-            if cost <= 0 or plan.overshoot <= MAX_BEYOND_MAP * plan.covered.sum():
-                return plan
-            cost = cost / 4.0 if cost > 4.0 else 0.0
+        map stay within ``MAX_BEYOND_MAP`` of its samples (:func:`core.regions.plan_within`)."""
+        return regions.plan_within(counts, frame=self.options.frame, min_size=self.options.min_task_size,
+                                   task_cost=self.options.task_cost, max_beyond=MAX_BEYOND_MAP)
 
     def _capped(self, counts: np.ndarray) -> np.ndarray:
-        """Apply ``Options.max_pixel_share`` to a map (same total when possible)."""
-        share = self.options.max_pixel_share
-        total = int(counts.sum())
-        if share <= 0 or total <= 0:
-            return counts
-        cap = max(1, int(np.ceil(share * total / counts.size)))
-        if counts.max() <= cap:
-            return counts
-        return allocate(counts.astype(np.float64), total, cap=np.full(counts.shape, cap, np.int64))
+        """Apply ``Options.max_pixel_share`` to a map (:func:`core.maps.cap_share`)."""
+        return maps.cap_share(counts, self.options.max_pixel_share)
 
-    def _render_task(self, task) -> None:
+    def _render_task(self, task):
+        """Render and merge one task; returns what the executor gave (color, features)."""
         t0 = time.perf_counter()
         color, feats = self.executor.render(task)
         self._count_render(time.perf_counter() - t0)
         self._merge(task, color, feats)
+        return color, feats
 
     def _count_render(self, seconds: float) -> None:
         self.timing.render += seconds

@@ -433,3 +433,17 @@ def assign_offsets(tasks, next_index):
         nxt[t.y0:t.y1, t.x0:t.x1] = off + int(t.samples)
         out.append(replace(t, offset=off))
     return out, nxt
+
+
+def plan_within(counts, frame: int = 0, min_size: int = 8, task_cost: float = DEFAULT_TASK_COST,
+                max_beyond: float = 0.1) -> Plan:
+    """The cheapest :func:`plan` at ``task_cost`` whose samples beyond the map
+    stay within ``max_beyond`` of its samples: the task cost is quartered until
+    they do (at 0 the plan is exact at ``min_size`` blocks, and is returned
+    whatever it adds)."""
+    cost = float(task_cost)
+    while True:
+        p = plan(counts, frame=frame, min_size=min_size, task_cost=cost)
+        if cost <= 0 or p.overshoot <= max_beyond * p.covered.sum():
+            return p
+        cost = cost / 4.0 if cost > 4.0 else 0.0

@@ -118,14 +118,8 @@ def box(a, r):
 
 
 def cap_map(counts, share):
-    from core.method import allocate
-    if share <= 0:
-        return counts
-    total = int(counts.sum())
-    cap = max(1, int(np.ceil(share * total / counts.size)))
-    if counts.max() <= cap:
-        return counts
-    return allocate(counts.astype(np.float64), total, cap=np.full(counts.shape, cap, np.int64))
+    from core.maps import cap_share
+    return cap_share(counts, share)
 
 
 def evaluate(w_true, counts, min_size, task_cost, spp, planned=True):
@@ -153,12 +147,7 @@ def evaluate_loop(w_true, counts, min_size, task_cost):
     from core import maps, regions
     from core.pipeline import MAX_BEYOND_MAP
     counts = maps.pool_to_blocks(counts, min_size)
-    cost = task_cost
-    while True:
-        plan = regions.plan(counts, min_size=min_size, task_cost=cost)
-        if cost <= 0 or plan.overshoot <= MAX_BEYOND_MAP * plan.covered.sum():
-            break
-        cost = cost / 4.0 if cost > 4.0 else 0.0
+    plan = regions.plan_within(counts, min_size=min_size, task_cost=task_cost, max_beyond=MAX_BEYOND_MAP)
     n = INITIAL + plan.covered
     spent = n.mean()
     e = expected_relmse(w_true, n)

@@ -303,3 +303,20 @@ def test_assign_offsets_never_reuses_index():
     # uniform rectangle: exact continuation
     out, _ = R.assign_offsets([RegionTask(0, 0, 3, 3, 2)], np.full((5, 5), 6))
     assert out[0].offset == 6
+
+
+def test_plan_within_keeps_samples_beyond_the_map_under_the_limit():
+    """plan_within lowers the task cost until the plan adds at most max_beyond
+    of its samples beyond a block map; the plan at the given cost adds more."""
+    from core.regions import plan, plan_within
+    rng = np.random.default_rng(4)
+    # as the loop plans it: one count per 8x8 block, here 1 or 4 at random
+    c = np.kron(rng.choice([1, 4], (8, 8)), np.ones((8, 8), np.int64))
+    loose = plan(c, min_size=8, task_cost=4096)
+    assert loose.overshoot > 0.1 * loose.covered.sum()
+    p = plan_within(c, min_size=8, task_cost=4096, max_beyond=0.1)
+    assert p.overshoot <= 0.1 * p.covered.sum()
+    assert (p.covered >= c).all() and p.n_tasks >= loose.n_tasks
+    # a map that a cheap plan already follows closely is planned at the given cost
+    even = np.full((32, 32), 3)
+    assert plan_within(even, min_size=8, task_cost=4096).n_tasks == plan(even, min_size=8, task_cost=4096).n_tasks
