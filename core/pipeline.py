@@ -247,6 +247,8 @@ class AdaptiveRun:
         self.time_limited = False       # True once max_seconds stopped the sampling
         self.max_task_seconds = 0.0     # longest single task render (the limit's granularity)
         self.sampling_seconds = 0.0     # elapsed() when the sampling ended
+        self.selection: dict | None = None  # what a selecting method (auto) chose, for reports
+        self.dropped: tuple = ()            # feature passes found to carry no information
 
     # ------------------------------------------------------------- accounting
     @property

@@ -437,6 +437,12 @@ class RenderJob:
         }
         _info_fields(summary, result.info)
         _info_fields(summary, run.prior_info, "reproject_")
+        if run.selection is not None:  # auto: what it chose, each candidate's prediction, why
+            summary.update({"chosen": run.selection["chosen"], "candidates": run.selection["candidates"],
+                            "chosen_why": run.selection["why"]})
+            attrs["cycles_adaptive/chosen"] = json.dumps(_jsonable(run.selection))
+        if run.dropped:
+            summary["dropped_passes"] = list(run.dropped)
         if self.reference is not None:
             summary.update(metrics.summary(image, error, self.reference))
         self._output = Output(passes, self.view_layer.name, attrs, summary)
