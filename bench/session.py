@@ -85,6 +85,12 @@ def loadavg():
         return None
 
 
+def _selects(name: str) -> bool:
+    """A method that chooses another from the initial pass (``auto``): no
+    oracle or uniform-sampling variant of it exists."""
+    from ..core.pipeline import selects
+    return selects(methods_registry.get(name))
+
 class Session:
     """One benchmark session (see the module notes)."""
 
@@ -230,7 +236,7 @@ class Session:
                 # would repeat the method's run exactly, so it is not made
                 if cfg["oracle"] and budget in cfg["oracle_budgets"] and budget > Options().initial_spp:
                     for m in cfg["methods"]:
-                        if m == "uniform":
+                        if m == "uniform" or _selects(m):
                             continue
                         base = next((r for r in runs if r["name"] == m and r["budget"] == budget), None)
                         if base is not None and base["status"] != "ok":
@@ -244,7 +250,7 @@ class Session:
                 if cfg.get("uniform_sampling", True) and budget in cfg["oracle_budgets"] \
                         and budget > Options().initial_spp:
                     for m in cfg["methods"]:
-                        if m == "uniform" or not methods_registry.get(m).ADAPTIVE:
+                        if m == "uniform" or _selects(m) or not methods_registry.get(m).ADAPTIVE:
                             continue
                         rec, _ = self.run_method(scene, vl, m, budget, frame, ref, uniform=True)
                         runs.append(rec)
@@ -362,7 +368,12 @@ class Session:
                                run.samples_rendered))
         rec.update(self.extra_run_figures(run, result, ref))
         if kind == "method":
-            rec["memory"] = self.reconstruct_memory(mod, run.buffers, run.params)
+            rec["memory"] = self.reconstruct_memory(run.method, run.buffers, run.params)
+        if run.selection is not None:  # auto: what it chose and each candidate's prediction
+            rec.update(chosen=run.selection["chosen"], candidates=run.selection["candidates"],
+                       chosen_why=run.selection["why"])
+        if run.selection is not None:
+            log(f"  {label:>14} @ {budget:3d}: chose {run.selection['chosen']} ({run.selection['why']})")
         log(f"  {label:>14} @ {budget:3d}: relMSE {e:.3e} in {wall:6.2f} s "
             f"(render {tm.render:.2f}, adapt {tm.adapt:.2f}, reconstruct {tm.reconstruct:.2f}), "
             f"{run.tasks_rendered} renders" + (" [stopped by --run-max-seconds]" if rec["partial"] else ""))

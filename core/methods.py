@@ -20,6 +20,7 @@ METHODS = {
     "lp": "lp",
     "rhf": "rhf",
     "oidn": "oidn",
+    "auto": "auto",
 }
 
 #: parameter groups that are not methods (frame ranges): name -> core module

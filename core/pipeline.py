@@ -249,6 +249,7 @@ class AdaptiveRun:
         self.sampling_seconds = 0.0     # elapsed() when the sampling ended
         self.selection: dict | None = None  # what a selecting method (auto) chose, for reports
         self.dropped: tuple = ()            # feature passes found to carry no information
+        self._cv: list = []                 # initial subsets on a selecting method's tiles
 
     # ------------------------------------------------------------- accounting
     @property
@@ -293,6 +294,8 @@ class AdaptiveRun:
                     yield Progress("initial", 0, self._fraction(),
                                    f"reused {int(extra.n.sum())} samples on "
                                    f"{int((extra.n > 0).sum())} pixels from the previous frame")
+            if selects(self.method):
+                yield from self._select()
             self._save_checkpoint()
         tol = max(1, int(0.009 * self.budget))  # the total lands within 1 % of the budget
         while self.iteration < opts.iterations and self.remaining > tol and not self._time_up():
@@ -356,12 +359,20 @@ class AdaptiveRun:
         tasks = subset_tasks(self.width, self.height, self.initial_spp, self.subsets, self.options.frame)
         self.buffers = Buffers.empty(self.height, self.width, self.feature_names)
         meter = variance.ExponentMeter()
+        # a selecting method scores candidates on crops of the separate subsets
+        crops = self.method.cv_regions(self.height, self.width, self.params) if selects(self.method) else []
+        self._cv = [[] for _ in crops]
         last = tasks[0]
         for s, task in enumerate(tasks):
             if s and self._time_up():  # one subset at least, so there is an image
                 break
-            color, _ = self._render_task(task)
+            color, feats = self._render_task(task)
             meter.add(color, task.samples)
+            for keep, (x0, y0, x1, y1) in zip(self._cv, crops):
+                keep.append((np.array(np.asarray(color)[y0:y1, x0:x1, :3], np.float64),
+                             {k: np.array(np.asarray(v)[y0:y1, x0:x1], np.float64)
+                              for k, v in feats.items() if k in self.method.PASSES},
+                             task.samples))
             last = task
             yield Progress("initial", 0, self._fraction(),
                            f"initial pass: subset {s + 1}/{len(tasks)} ({task.samples} spp)",
@@ -369,6 +380,43 @@ class AdaptiveRun:
         self.next_index[:] = last.offset + last.samples
         # the sequence's stratification, measured once on the equal subsets (core/variance.py)
         self.buffers.exponent = meter.exponent(self.buffers)
+
+    def _select(self):
+        """Let a selecting method (``auto``) choose the method to run from the
+        initial pass (a :class:`Work`); the run continues with its choice,
+        default parameters, and reports it in :attr:`selection`."""
+        from .auto import Context
+        opts, buf = self.options, self.buffers
+        ctx = Context(spp=float(opts.spp), initial_spp=self.samples_rendered / self.pixels,
+                      pixels=self.pixels, render_seconds=self.timing.render, tasks=self.tasks_rendered,
+                      iterations=opts.iterations, task_cost=opts.task_cost,
+                      max_pixel_share=opts.max_pixel_share, min_task_size=opts.min_task_size,
+                      exponent=buf.exponent)
+        crops = self.method.cv_regions(self.height, self.width, self.params)
+        data, chooser, params = self._cv, self.method, self.params
+
+        def choose():
+            t0 = time.perf_counter()
+            var = buf.variance_of_mean().mean(axis=-1)
+            lum = np.clip(buf.color.mean.mean(axis=-1), 0.0, None)
+            with np.errstate(invalid="ignore", over="ignore"):
+                rel_var = var / (lum * lum + 0.01)
+            sel = chooser.select(crops, data, ctx, rel_var, params, self.height, self.width)
+            self.timing.adapt += time.perf_counter() - t0
+            return sel
+
+        work = Work(choose, f"choosing a method ({self.method.NAME})")
+        yield Progress("adapt", 0, self._fraction(), work.label, work=work)
+        sel = work.result()
+        self._cv = []
+        self._adopt(sel.method, sel.report)
+        yield Progress("adapt", 0, self._fraction(), f"{self.options.method}: {sel.report['chosen']} "
+                       f"({sel.report['why']})")
+
+    def _adopt(self, method, report: dict) -> None:
+        self.method = method
+        self.params = params_from_dict(method.Params, {})
+        self.selection = report
 
     def _shaped(self, counts: np.ndarray) -> np.ndarray:
         """A method's map as the planner gets it: pooled by confidence and to
@@ -526,7 +574,7 @@ class AdaptiveRun:
         meta = {"options": _options_key(self.options), "method": self.method.NAME,
                 "iteration": self.iteration, "tasks_rendered": self.tasks_rendered,
                 "overshoot": self.overshoot, "timing": asdict(self.timing), "history": self.history,
-                "exponent": self.buffers.exponent}
+                "exponent": self.buffers.exponent, "selection": self.selection}
         storage.save_checkpoint(self.checkpoint_path, self.buffers,
                                 {"next_index": self.next_index, "reused": self.reused},
                                 meta, self.method_state)
@@ -535,6 +583,12 @@ class AdaptiveRun:
         """Continue from a checkpoint written by a run with the same options
         (``core.storage``: plain arrays and JSON, nothing unpickled)."""
         b, arrays, meta, state = storage.load_checkpoint(path)
+        sel = meta.get("selection")
+        if sel and selects(self.method):  # the choice made before the checkpoint
+            try:
+                self._adopt(self.method.resolve(sel["chosen"]), sel)
+            except (KeyError, TypeError, ValueError) as exc:
+                raise ValueError(f"{path}: checkpoint's choice is unreadable ({exc})") from None
         if meta.get("options") != _options_key(self.options) or meta.get("method") != self.method.NAME:
             raise ValueError(f"{path}: checkpoint was made with other settings "
                              f"({meta.get('method')}, {meta.get('options')}); use the same options to resume")
@@ -550,6 +604,13 @@ class AdaptiveRun:
         self.overshoot = int(meta["overshoot"])
         self.history = list(meta.get("history", []))
         self.method_state = state
+
+
+def selects(method) -> bool:
+    """A selecting method (``core.auto``): it chooses the method to run from
+    the initial pass (``cv_regions``, ``select``, ``resolve``) instead of
+    sampling itself."""
+    return all(hasattr(method, m) for m in ("cv_regions", "select", "resolve"))
 
 
 def _within(plan, limit: int):

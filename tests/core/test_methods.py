@@ -7,6 +7,7 @@ import pytest
 from core import methods
 from core.buffers import Buffers
 from core.method import Method, MethodResult
+from core.pipeline import selects
 
 DENOISE_SIGNATURE = ["color", "color_var", "features", "feature_var", "n", "params"]
 
@@ -29,6 +30,12 @@ def test_denoise_has_one_signature_and_matches_reconstruct(name):
     h, w = 12, 10
     feats = [{p: rng.random((h, w, 3 if p != "depth" else 1)) for p in mod.PASSES} for _ in range(4)]
     buf = Buffers.from_subsets([0.5 + 0.1 * rng.random((h, w, 3)) for _ in range(4)], [2] * 4, feats)
+    if selects(mod):  # auto: no reconstruction of its own, a clear error
+        with pytest.raises(ValueError, match="name a method"):
+            mod.denoise(buf.color.mean, buf.variance_of_mean())
+        with pytest.raises(ValueError, match="name a method"):
+            mod.reconstruct(buf, mod.Params())
+        return
     res = mod.denoise(buf.color.mean, buf.variance_of_mean(), {p: buf.feature(p) for p in mod.PASSES},
                       {p: buf.feature_variance(p) for p in mod.PASSES}, buf.n, mod.Params())
     assert isinstance(res, MethodResult) and res.image.shape == (h, w, 3) and res.error.shape == (h, w)
