@@ -267,6 +267,29 @@ class CyclesExecutor:
     def _protect_render_result(self):
         protect_render_result(self.guard)
 
+    def drop_passes(self, names) -> None:
+        """Stop rendering and reading the feature passes ``names`` (found to
+        carry no information): they leave the result, and the view layer
+        passes no remaining feature needs are switched off (Cycles' denoising
+        data, albedo + normal + depth, is one switch: off only when all three
+        are dropped).  The guard restores the scene's settings on exit."""
+        names = set(names)
+        dropped = [f for f in self.features if f in names]
+        self.features = tuple(f for f in self.features if f not in names)
+        needed = set()
+        for f in self.features:
+            enable = PASS_SOURCES[f][1]
+            needed.update(enable if isinstance(enable, tuple) else (enable,))
+        for f in dropped:
+            enable = PASS_SOURCES[f][1]
+            for attr in (enable if isinstance(enable, tuple) else (enable,)):
+                if attr in needed:
+                    continue
+                if attr == "denoising":
+                    self.guard.set(self.view_layer.cycles, "denoising_store_passes", False)
+                else:
+                    self.guard.set(self.view_layer, attr, False)
+
     # ----------------------------------------------------------------- render
     def render(self, task):
         """Render one task; returns (rgba (h, w, 4) float64, features dict)."""

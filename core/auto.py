@@ -406,8 +406,9 @@ def _reconstruct(name: str, buf: Buffers) -> MethodResult:
     if name == "oidn":
         from . import oidn
         p = oidn.Params()
-        img = oidn.oidn_filter(buf.color.mean, buf.features["albedo"].mean, buf.features["normal"].mean,
-                               quality=p.quality, prefilter=p.prefilter, backend=p.backend)
+        aux = [buf.features[k].mean if k in buf.features else None for k in ("albedo", "normal")]
+        img = oidn.oidn_filter(buf.color.mean, *aux, quality=p.quality, prefilter=p.prefilter,
+                               backend=p.backend)
         return MethodResult(img, np.zeros(buf.shape))
     return _module(name).reconstruct(buf, None)
 

@@ -323,6 +323,42 @@ class Buffers:
         from .variance import calibrated_variance_of_mean
         return calibrated_variance_of_mean(self, self.exponent)
 
+    def constant_features(self, names=None, rtol: float = 1e-6) -> tuple:
+        """Feature passes (of ``names``, default all) that carry no
+        information: on the pixels with samples every channel's finite means
+        lie within ``rtol * (1 + max |value|)`` of each other (a flat floor's
+        depth seen straight on, one material's albedo).  A pass with no finite
+        value counts as constant."""
+        has = self.n > 0
+        out = []
+        for name in (self.features if names is None else names):
+            st = self.features.get(name)
+            if st is None:
+                continue
+            v = st.mean[has]
+            v = np.where(np.isfinite(v), v, np.nan)
+            if v.size == 0 or np.all(np.isnan(v)):
+                out.append(name)
+                continue
+            with np.errstate(invalid="ignore"):
+                lo, hi = np.nanmin(v, axis=0), np.nanmax(v, axis=0)
+            scale = 1.0 + np.nanmax(np.abs(v))
+            if np.all(hi - lo <= rtol * scale):
+                out.append(name)
+        return tuple(out)
+
+    def without(self, names) -> "Buffers":
+        """A view of these buffers without the feature passes ``names`` (the
+        arrays are shared, nothing is copied): what a method reads when those
+        passes carry no information."""
+        if not names:
+            return self
+        keep = {k: v for k, v in self.features.items() if k not in names}
+        half = self.half
+        if half is not None:
+            half = Half(half.n, half.color, {k: v for k, v in half.features.items() if k not in names})
+        return Buffers(self.n, self.k, self.color, keep, half, self.exponent)
+
     def feature(self, name: str) -> np.ndarray:
         return self.features[name].mean
 

@@ -72,3 +72,19 @@ def summary(image: np.ndarray, error: np.ndarray, reference: np.ndarray) -> dict
 def _check(x, r):
     if x.shape != r.shape:
         raise ValueError(f"image is {x.shape[:2]} but the reference is {r.shape[:2]}")
+
+
+def estimated_relmse(image: np.ndarray, error: np.ndarray) -> float:
+    """The relMSE a run's own error estimate predicts (no reference needed):
+    mean over pixels and RGB of ``error / (image^2 + 0.01)``, i.e.
+    :func:`relmse` with the image standing in for the reference and the
+    estimated squared error (averaged over RGB) for every channel's.
+    Non-finite terms count as 0 (pixels without an estimate); 0.0 for an
+    empty image."""
+    img = np.asarray(image, np.float64)[..., :3]
+    err = np.asarray(error, np.float64)
+    if img.size == 0:
+        return 0.0
+    with np.errstate(invalid="ignore", over="ignore"):
+        e = err[..., None] / (img * img + REL_EPS)
+    return float(np.where(np.isfinite(e), e, 0.0).mean())

@@ -41,7 +41,7 @@ from dataclasses import asdict, dataclass, field, fields
 
 import numpy as np
 
-from . import maps, methods, regions, storage, variance
+from . import maps, methods, metrics, regions, storage, variance
 from .buffers import Buffers
 from .method import Method, check_ranges, consistency_guard, param, params_from_dict
 
@@ -104,6 +104,12 @@ class Options:
                            "reconstruction less", 0.0, None, label="Consistency Guard", soft_max=10.0)
     max_seconds: float = param(0.0, "stop sampling after this many seconds (0: no limit)", 0.0, None,
                                label="Time Limit", subtype="TIME_ABSOLUTE")
+    #: the loop then doubles the samples each round and checks the estimate
+    #: before each (see AdaptiveRun.steps); --spp is the most it renders
+    target_error: float = param(0.0, "keep sampling until the final image's estimated relMSE is "
+                                "below this (0: off); the samples per pixel are then the most the "
+                                "run may render, and the rounds double the samples (iterations is "
+                                "ignored)", 0.0, None, label="Target Error", soft_max=1.0)
     params: dict = field(default_factory=dict, metadata={"cli": False, "ui": False})
     #: extra passes to read beyond the method's own
     features: tuple = field(default=(), metadata={"cli": False, "ui": False})
@@ -226,7 +232,9 @@ class AdaptiveRun:
         self.budget = int(round(options.spp * self.pixels))
         adaptive = self.method.ADAPTIVE
         spp_int = max(1, int(np.floor(options.spp)))
-        self.initial_spp = spp_int if not adaptive else min(options.initial_spp, spp_int)
+        # with a target the budget is a ceiling: every method starts small
+        self.initial_spp = spp_int if not (adaptive or options.target_error > 0) \
+            else min(options.initial_spp, spp_int)
         self.subsets = max(1, min(options.subsets, self.initial_spp))
         # alpha (Combined.A) rides along as a one-channel pass so nothing is lost
         self.feature_names = tuple(dict.fromkeys(tuple(self.method.PASSES) + tuple(options.features)
@@ -250,12 +258,21 @@ class AdaptiveRun:
         self.selection: dict | None = None  # what a selecting method (auto) chose, for reports
         self.dropped: tuple = ()            # feature passes found to carry no information
         self._cv: list = []                 # initial subsets on a selecting method's tiles
+        self.target_met = False             # Options.target_error reached
+        self.estimates: list = []           # (spp, estimated relMSE) at each target check
+        self._result = None                 # (samples, MethodResult) of the last target check
 
     # ------------------------------------------------------------- accounting
     @property
     def samples_rendered(self) -> int:
         """Samples rendered by this run (reused samples not included)."""
         return 0 if self.buffers is None else int(round(self.buffers.n.sum() - self.reused.sum()))
+
+    @property
+    def view(self) -> Buffers:
+        """The buffers as the method reads them: without the passes found to
+        carry no information (:attr:`dropped`)."""
+        return self.buffers.without(self.dropped)
 
     @property
     def remaining(self) -> int:
@@ -294,12 +311,22 @@ class AdaptiveRun:
                     yield Progress("initial", 0, self._fraction(),
                                    f"reused {int(extra.n.sum())} samples on "
                                    f"{int((extra.n > 0).sum())} pixels from the previous frame")
+            yield from self._drop_uninformative()
             if selects(self.method):
                 yield from self._select()
             self._save_checkpoint()
         tol = max(1, int(0.009 * self.budget))  # the total lands within 1 % of the budget
-        while self.iteration < opts.iterations and self.remaining > tol and not self._time_up():
-            last = self.iteration == opts.iterations - 1 or not self.method.ADAPTIVE
+        target = opts.target_error > 0
+        while (target or self.iteration < opts.iterations) and self.remaining > tol \
+                and not self._time_up():
+            if target:
+                self.target_met = yield from self._target_reached()
+                if self.target_met:
+                    break
+                # double the samples: the estimate is checked at 1x, 2x, 4x .. the initial pass
+                last = self.samples_rendered >= self.remaining
+            else:
+                last = self.iteration == opts.iterations - 1 or not self.method.ADAPTIVE
             entry = {"iteration": self.iteration + 1, "tasks": 0, "samples": 0, "overshoot": 0}
             # the last iteration may take up to TOP_UP more planning rounds to
             # spend what rounding to rectangles left over (each a new map)
@@ -307,7 +334,10 @@ class AdaptiveRun:
                 if self.remaining <= tol or self._time_up():
                     break
                 left = max(1, opts.iterations - self.iteration)
-                budget = self.remaining if last else int(self.remaining / left)
+                if target:
+                    budget = self.remaining if last else self.samples_rendered
+                else:
+                    budget = self.remaining if last else int(self.remaining / left)
                 rendered = yield from self._round(budget, entry)
                 if not rendered:
                     break
@@ -317,6 +347,10 @@ class AdaptiveRun:
             yield Progress("checkpoint", self.iteration, self._fraction(),
                            f"iteration {self.iteration} done, {self.samples_rendered / self.pixels:.2f} spp")
         self.sampling_seconds = self.elapsed()
+        if target and not self.target_met:
+            yield Progress("plan", self.iteration, self._fraction(),
+                           f"target relMSE {opts.target_error:g} not reached within the budget "
+                           f"({self.samples_rendered / self.pixels:.2f} spp)")
         if self.time_limited:
             yield Progress("plan", self.iteration, self._fraction(),
                            f"time limit of {opts.max_seconds:g} s reached after {self.elapsed():.2f} s")
@@ -381,6 +415,56 @@ class AdaptiveRun:
         # the sequence's stratification, measured once on the equal subsets (core/variance.py)
         self.buffers.exponent = meter.exponent(self.buffers)
 
+    def _drop_uninformative(self):
+        """Feature passes the method reads that carry no information in this
+        frame (:meth:`core.buffers.Buffers.constant_features`, on the initial
+        pass): the method no longer reads them (:attr:`view`), and an executor
+        that can (``drop_passes``) stops rendering those the run does not
+        also keep for its output (``Options.features``).  Albedo stays while
+        normal is read (OIDN takes the normal only with an albedo)."""
+        reads = [p for p in self.method.PASSES if p in self.buffers.features]
+        flat = set(self.buffers.constant_features(reads))
+        if "albedo" in flat and "normal" in reads and "normal" not in flat:
+            flat.discard("albedo")
+        self.dropped = tuple(p for p in reads if p in flat)
+        if not self.dropped:
+            return
+        self._stop_rendering()
+        yield Progress("initial", 0, self._fraction(),
+                       f"passes without information in this frame, not read: {', '.join(self.dropped)}")
+
+    def _stop_rendering(self) -> None:
+        drop = getattr(self.executor, "drop_passes", None)  # optional member, see module notes
+        unkept = [p for p in self.dropped if p not in self.options.features]
+        if drop is not None and unkept:
+            drop(unkept)
+
+    def _target_reached(self):
+        """Reconstruct what is rendered (a :class:`Work`) and compare its
+        estimated relMSE (:func:`core.metrics.estimated_relmse` of the
+        method's error) with ``Options.target_error``; the result is kept for
+        the round's sampler.  Returns True once below."""
+        samples = self.samples_rendered
+        work = Work(lambda: self._timed_reconstruct(), f"iteration {self.iteration + 1}: estimating the "
+                    f"error ({self.method.NAME})")
+        yield Progress("adapt", self.iteration, self._fraction(), work.label, work=work)
+        result = work.result()
+        self._result = (samples, result)
+        est = metrics.estimated_relmse(result.image, result.error)
+        spp = samples / self.pixels
+        self.estimates.append((spp, est))
+        reached = est <= self.options.target_error
+        yield Progress("adapt", self.iteration, self._fraction(),
+                       f"estimated relMSE {est:.3g} at {spp:.2f} spp "
+                       f"({'below' if reached else 'above'} the target {self.options.target_error:g})")
+        return reached
+
+    def _timed_reconstruct(self):
+        t0 = time.perf_counter()
+        result = self.method.reconstruct(self.view, self.params)
+        self.timing.adapt += time.perf_counter() - t0
+        return result
+
     def _select(self):
         """Let a selecting method (``auto``) choose the method to run from the
         initial pass (a :class:`Work`); the run continues with its choice,
@@ -393,7 +477,10 @@ class AdaptiveRun:
                       max_pixel_share=opts.max_pixel_share, min_task_size=opts.min_task_size,
                       exponent=buf.exponent)
         crops = self.method.cv_regions(self.height, self.width, self.params)
-        data, chooser, params = self._cv, self.method, self.params
+        dropped = set(self.dropped)
+        data = [[(c, {k: v for k, v in f.items() if k not in dropped}, n) for c, f, n in tile]
+                for tile in self._cv]
+        chooser, params = self.method, self.params
 
         def choose():
             t0 = time.perf_counter()
@@ -452,7 +539,7 @@ class AdaptiveRun:
 
     def _merge(self, task, color, feats) -> None:
         t0 = time.perf_counter()
-        merge_render(self.buffers, task, color, feats)
+        merge_render(self.buffers, task, color, feats, constant=self.dropped)
         self.tasks_rendered += 1
         self.timing.overhead += time.perf_counter() - t0
 
@@ -487,9 +574,14 @@ class AdaptiveRun:
         sampler reads, the sample map and its plan; timed as ``adapt``."""
         t0 = time.perf_counter()
         # a method whose sampler ignores the reconstruction (AWR: Eq. 8 reads
-        # the noisy means) says so, and is not reconstructed per iteration
-        result = (self.method.reconstruct(self.buffers, self.params)
-                  if self.method.SAMPLER_USES_RESULT else None)
+        # the noisy means) says so, and is not reconstructed per iteration;
+        # a target check of the same samples already reconstructed them
+        if not self.method.SAMPLER_USES_RESULT:
+            result = None
+        elif self._result is not None and self._result[0] == self.samples_rendered:
+            result = self._result[1]
+        else:
+            result = self.method.reconstruct(self.view, self.params)
         planned = self._plan_iteration(result, budget)
         self.timing.adapt += time.perf_counter() - t0
         return planned
@@ -512,7 +604,7 @@ class AdaptiveRun:
         best = None
         for _ in range(6):
             state = copy.deepcopy(self.method_state)
-            counts = self._shaped(self.method.sample_map(self.buffers, result, max(ask, 0),
+            counts = self._shaped(self.method.sample_map(self.view, result, max(ask, 0),
                                                          self.params, state))
             plan = self._planned(counts)
             cov = int(plan.covered.sum())
@@ -527,7 +619,7 @@ class AdaptiveRun:
                 break
         if best is None:  # even small maps round up past the limit
             state = copy.deepcopy(self.method_state)
-            counts = np.asarray(self.method.sample_map(self.buffers, result, max(limit, 0), self.params,
+            counts = np.asarray(self.method.sample_map(self.view, result, max(limit, 0), self.params,
                                                        state), np.int64)
             # exact plans at block sides 1, 2, 4 .. min_task_size: the one that
             # keeps the most samples within the limit (tasks past it dropped),
@@ -559,8 +651,10 @@ class AdaptiveRun:
         """Final reconstruction (the method's, or ``reconstructor(run)``),
         through the consistency guard of ``Options.guard_z``."""
         t0 = time.perf_counter()
-        if reconstructor is None:
-            result = self.method.reconstruct(self.buffers, self.params)
+        if reconstructor is None and self._result is not None and self._result[0] == self.samples_rendered:
+            result = self._result[1]  # the target check's reconstruction of these very samples
+        elif reconstructor is None:
+            result = self.method.reconstruct(self.view, self.params)
         else:
             result = reconstructor(self)
         result = consistency_guard(result, self.buffers, self.options.guard_z)
@@ -574,7 +668,8 @@ class AdaptiveRun:
         meta = {"options": _options_key(self.options), "method": self.method.NAME,
                 "iteration": self.iteration, "tasks_rendered": self.tasks_rendered,
                 "overshoot": self.overshoot, "timing": asdict(self.timing), "history": self.history,
-                "exponent": self.buffers.exponent, "selection": self.selection}
+                "exponent": self.buffers.exponent, "selection": self.selection,
+                "dropped": list(self.dropped)}
         storage.save_checkpoint(self.checkpoint_path, self.buffers,
                                 {"next_index": self.next_index, "reused": self.reused},
                                 meta, self.method_state)
@@ -597,6 +692,8 @@ class AdaptiveRun:
                              f"{(self.height, self.width)}")
         b.exponent = float(meta.get("exponent", 1.0))
         self.buffers = b
+        self.dropped = tuple(p for p in meta.get("dropped", []) if p in b.features)
+        self._stop_rendering()
         self.next_index = arrays["next_index"]
         self.reused = arrays.get("reused", np.zeros((self.height, self.width)))
         self.iteration = int(meta["iteration"])
@@ -639,13 +736,19 @@ def subset_tasks(width: int, height: int, spp: int, subsets: int, frame: int = 0
     return tasks
 
 
-def merge_render(buffers: Buffers, task, color, features) -> None:
+def merge_render(buffers: Buffers, task, color, features, constant=()) -> None:
     """Merge one rendered task (an executor's ``(color, features)``) into
     ``buffers`` as one sample group over the task's rectangle.  Alpha
     (``color``'s 4th channel, 1 without one) rides along as the ``alpha``
-    pass; passes ``buffers`` does not keep are dropped."""
+    pass; passes ``buffers`` does not keep are dropped; ``constant`` passes
+    missing from the render (no longer rendered: constant in this frame)
+    take their accumulated mean."""
     color = np.asarray(color, np.float64)
     feats = dict(features)
+    sl = (slice(task.y0, task.y1), slice(task.x0, task.x1))
+    for name in constant:
+        if name not in feats and name in buffers.features:
+            feats[name] = buffers.features[name].mean[sl]
     if "alpha" not in feats:
         feats["alpha"] = color[:, :, 3:4] if color.shape[2] >= 4 else np.ones(color.shape[:2] + (1,))
     buffers.merge_group(color[:, :, :3], task.samples,
@@ -665,5 +768,7 @@ def render_subsets(executor, buffers: Buffers, spp: int, subsets: int, frame: in
 def _options_key(o: Options) -> dict:
     d = asdict(o)
     d.pop("max_seconds", None)
+    if not d.get("target_error"):  # checkpoints from before the option resume
+        d.pop("target_error", None)
     d["features"] = list(d["features"])
     return json.loads(json.dumps(d, sort_keys=True, default=str))

@@ -310,3 +310,125 @@ def test_work_runs_once_and_reraises():
         bad.result()
     with pytest.raises(ZeroDivisionError):  # stored, raised again
         bad.result()
+
+
+def _estimate_at(run, spp):
+    return dict(run.estimates)[spp]
+
+
+def _smooth(h, w):
+    """A smooth image: the uniform method's error estimate (the calibrated,
+    spatially pooled variance) pools only alike pixels."""
+    yy, xx = np.mgrid[0:h, 0:w]
+    return (0.5 + 0.3 * xx / w + 0.2 * yy / h)[..., None] * np.array([1.0, 0.8, 0.6])
+
+
+def test_target_error_stops_at_the_first_check_below_it():
+    """Uniform sampling of known noise (per-sample relative variance 0.8^2/3):
+    the estimate halves with each doubling; with the target between the 8-
+    and the 16-spp estimates the run stops at 16 spp of a 64-spp ceiling."""
+    probe = AdaptiveRun(FakeExecutor(_smooth(32, 40)), Options(method="uniform", spp=64, target_error=1e-9))
+    for _ in probe.steps():
+        pass
+    spps = [s for s, _ in probe.estimates]
+    assert spps[:5] == [4.0, 8.0, 16.0, 32.0, 64.0][: len(spps[:5])]
+    e8, e16 = _estimate_at(probe, 8.0), _estimate_at(probe, 16.0)
+    assert e16 < e8
+    target = np.sqrt(e8 * e16)
+    run = AdaptiveRun(FakeExecutor(_smooth(32, 40)), Options(method="uniform", spp=64, target_error=target))
+    for _ in run.steps():
+        pass
+    assert run.target_met
+    assert run.samples_rendered == 16 * 32 * 40
+    assert [s for s, _ in run.estimates] == [4.0, 8.0, 16.0]
+    assert run.estimates[-1][1] <= target < run.estimates[-2][1]
+    # the estimate is honest here: the true relMSE of the result within 1.5x of it
+    truth = _smooth(32, 40)
+    img = run.reconstruct().image
+    true = float(((img - truth) ** 2 / (truth ** 2 + 0.01)).mean())
+    assert 1 / 1.5 < true / run.estimates[-1][1] < 1.5
+
+
+def test_target_error_out_of_reach_spends_the_budget_and_says_so():
+    run = AdaptiveRun(FakeExecutor(_truth(16, 16)), Options(method="var", spp=12, target_error=1e-12))
+    messages = [p.message for p in run.steps()]
+    assert not run.target_met
+    assert abs(run.samples_rendered - 12 * 256) <= 0.01 * 12 * 256
+    assert any("not reached within the budget" in m for m in messages)
+
+
+def test_target_error_must_not_be_negative():
+    with pytest.raises(ValueError, match="target_error"):
+        Options(target_error=-0.1)
+
+
+class _DroppingExecutor(FakeExecutor):
+    """A FakeExecutor that can stop rendering passes, as Cycles' can."""
+
+    def drop_passes(self, names):
+        self.dropped_calls = getattr(self, "dropped_calls", []) + [tuple(names)]
+        self.features = {k: v for k, v in self.features.items() if k not in names}
+
+
+class _Spy:
+    """The lp method, recording which passes each of its calls saw."""
+
+    def __init__(self):
+        from core import lp
+        self.base = lp
+        self.NAME, self.PASSES, self.Params = lp.NAME, lp.PASSES, lp.Params
+        self.ADAPTIVE, self.SAMPLER_USES_RESULT = lp.ADAPTIVE, lp.SAMPLER_USES_RESULT
+        self.seen = []
+
+    def reconstruct(self, buf, params=None):
+        self.seen.append(set(buf.features))
+        return self.base.reconstruct(buf, params)
+
+    def sample_map(self, buf, result, budget, params=None, state=None):
+        self.seen.append(set(buf.features))
+        return self.base.sample_map(buf, result, budget, params, state)
+
+
+def test_a_constant_pass_is_neither_read_nor_rendered():
+    h, w = 24, 32
+    yy, xx = np.mgrid[0:h, 0:w]
+    feats = {"albedo": np.dstack([0.2 + 0.6 * (xx > w // 2)] * 3),
+             "normal": np.dstack([np.sin(xx / 7.0), np.cos(xx / 7.0), 0 * xx]),
+             "depth": np.full((h, w, 1), 3.5)}
+    ex = _DroppingExecutor(_smooth(h, w), feats)
+    spy = _Spy()
+    run = AdaptiveRun(ex, Options(method="lp", spp=8, iterations=2), method=spy)
+    messages = [p.message for p in run.steps()]
+    run.reconstruct()
+    assert run.dropped == ("depth",)
+    assert ex.dropped_calls == [("depth",)]
+    assert spy.seen and all("depth" not in s and {"albedo", "normal"} <= s for s in spy.seen)
+    assert any("not read: depth" in m for m in messages)
+    # the buffers keep the constant pass, exactly, for the output
+    np.testing.assert_array_equal(run.buffers.features["depth"].mean, 3.5)
+    assert run.samples_rendered == 8 * h * w
+
+
+def test_a_pass_kept_for_the_output_is_still_rendered():
+    h, w = 16, 16
+    feats = {"albedo": np.random.default_rng(0).random((h, w, 3)), "normal": np.ones((h, w, 3)),
+             "depth": np.full((h, w, 1), 2.0)}
+    ex = _DroppingExecutor(_smooth(h, w), feats)
+    run = AdaptiveRun(ex, Options(method="lp", spp=6, features=("depth",)))
+    for _ in run.steps():
+        pass
+    assert "depth" in run.dropped  # normal is constant too, albedo is not
+    assert not hasattr(ex, "dropped_calls") or all("depth" not in c for c in ex.dropped_calls)
+
+
+def test_constant_features():
+    from core.buffers import Buffers
+    h, w = 6, 7
+    flat = {"albedo": np.full((h, w, 3), 0.5), "normal": np.random.default_rng(1).random((h, w, 3)),
+            "depth": np.full((h, w, 1), 1e3) * (1 + 1e-9 * np.random.default_rng(2).random((h, w, 1)))}
+    buf = Buffers.from_subsets([np.ones((h, w, 3))] * 2, [1, 1], [flat] * 2)
+    assert buf.constant_features() == ("albedo", "depth")
+    nan = Buffers.from_subsets([np.ones((h, w, 3))], [1], [{"depth": np.full((h, w, 1), np.nan)}])
+    assert nan.constant_features() == ("depth",)
+    view = buf.without(("albedo",))
+    assert set(view.features) == {"normal", "depth"} and view.color is buf.color
