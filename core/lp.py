@@ -14,7 +14,8 @@ Equations (Moon et al. 2015) and where they are computed:
 
 * Eq. 1, the prediction ``f_hat(x_i) = beta_c^T z_i`` with
   ``z_i = (1, x_i - x_c)`` in TSVD coordinates: :meth:`core.lp_solve.Design.predict`;
-  overlapping predictions are averaged by :class:`_Accumulator` (Sec. 5.1).
+  overlapping predictions are averaged by :class:`_Accumulator` (Sec. 5.1),
+  with the mean offsets of :func:`_mean_offsets`.
 * Eq. 2, the optimal window ``k_opt = argmin_k xi_c(k)`` with Eq. 4's
   estimate substituted: :func:`select_windows`, :func:`_optimal_models`.
 * Eq. 3, recursive least squares from ``beta(0) = (y_c, 0, ..., 0)``,
@@ -69,6 +70,11 @@ Choices where the paper leaves room (each also stated where it is made):
 * **Blending** (Sec. 5.1 averages): weights taper to 0 at the window border
   and fall with the model's estimated error (:func:`blend_weights`), against
   seams and against a highlight's model overriding its neighbours'.
+* **Mean-preserving blend.**  After the last pass every model's intercept
+  is moved by its residual weighted with its share of the final blend
+  (at most ``OFFSET_LIMIT`` = 3 standard errors of its window mean), so the
+  blend keeps the input's sum instead of losing the energy of bright pixels
+  that the models spread over their windows (:func:`_mean_offsets`).
 * **Non-negative output.**  Predictions are bounded below by
   ``min(0, window minimum)`` (:func:`_lower_bound`; the paper is silent).
 * **TSVD rank rule** (after the authors' WLR code, Moon et al. 2014): inside
@@ -184,7 +190,8 @@ class LPFit:
         (z = [1, (x - x_c) @ transform]), ``center_features`` (M, D) raw x_c
         (position columns are pixel offsets, so 0); D is the raw feature count
         (position, depth, normal, albedo), and entries beyond a centre's rank
-        d_c (``center_rank``) are zero.
+        d_c (``center_rank``) are zero; ``offset`` (M, 3) the blend's mean
+        offset of each model (:func:`_mean_offsets`, not in ``beta``).
     """
 
     image: np.ndarray
@@ -462,7 +469,9 @@ def fit_centres(frame: _Frame, centre_flat: np.ndarray, params: Params, keep_mod
     window, ``ring`` (K,), ``pred`` (N, 3, K) each model's prediction (Eq. 1)
     at every window pixel, ``beta`` (N, 3, D+1) optimal models (zero-padded),
     ``r_opt`` (N, 3), ``xi_opt`` (N, 3), ``xi`` (R+1, N, 3) all estimates,
-    ``rank`` (N,) and, with ``keep_models``, ``P`` (N, 3, D+1, D+1) and
+    ``rank`` (N,), ``grad`` (N, 3, D) the slopes folded into raw ``x - x_c``,
+    ``b0`` (N, 3) the intercepts, ``lower`` (N, 3) the bounds of
+    :func:`_lower_bound` and, with ``keep_models``, ``P`` (N, 3, D+1, D+1) and
     ``transform`` (N, D, D); with ``all_rings`` (for tests and studies of the
     window choice) ``pred_rings`` (R+1, N, 3, K), the predictions of every
     ring's model ``beta(k(r))``, and ``w`` (N, K) the usable pixels.
@@ -483,6 +492,7 @@ def fit_centres(frame: _Frame, centre_flat: np.ndarray, params: Params, keep_mod
     se = np.zeros((radius + 1, n_c, 3))
     floor = np.zeros((radius + 1, n_c, 3))
     beta = np.zeros((n_c, 3, d + 1))
+    grad = np.zeros((n_c, 3, d))
     pred = np.empty((n_c, 3, k))
     pinv = np.zeros((n_c, 3, d + 1, d + 1)) if keep_models else None
     rings = np.empty((radius + 1, n_c, 3, k)) if all_rings else None
@@ -503,6 +513,7 @@ def fit_centres(frame: _Frame, centre_flat: np.ndarray, params: Params, keep_mod
         se[:, sel] = _standard_errors(fits)
         bg, gram = _optimal_models(fits, xg, se[:, sel])
         beta[sel, :, :p] = bg
+        grad[sel] = np.matmul(bg[:, :, 1:], design.t)                    # slopes in raw x - x_c
         pred[sel] = np.maximum(design.predict(bg), lower[grp][:, :, None])   # Eq. 1
         if keep_models:
             pinv[sel, :, :p, :p] = np.linalg.inv(gram)
@@ -512,8 +523,10 @@ def fit_centres(frame: _Frame, centre_flat: np.ndarray, params: Params, keep_mod
                                            lower[grp][:, :, None])
     r_opt = select_windows(xi, se)                                     # (N, 3)
     at = (r_opt, np.arange(n_c)[:, None], np.arange(3)[None, :])
+    lower_in = np.empty_like(lower)
+    lower_in[order] = lower
     out = {"index": index, "ring": ring, "pred": pred, "rank": rank, "r_opt": r_opt, "xi": xi,
-           "xi_opt": np.maximum(xi[at], floor[at]), "beta": beta}
+           "xi_opt": np.maximum(xi[at], floor[at]), "beta": beta, "grad": grad, "b0": beta[:, :, 0].copy(), "lower": lower_in}
     if keep_models:
         out["P"] = pinv
         out["transform"] = transform
@@ -784,6 +797,7 @@ def _fit_frame(frame: _Frame, params: Params, keep_models: bool = False) -> LPFi
     chunk = max(1, min(chunk, h * w))
     acc = _Accumulator(frame)
     placed, passes = _place_centres(frame, acc, params, chunk, keep_models)
+    offsets = _mean_offsets(frame, acc, placed, int(params.radius), chunk)
     centres = placed["centers"]
     if keep_models and centres:
         allc = np.concatenate(centres)
@@ -805,6 +819,7 @@ def _fit_frame(frame: _Frame, params: Params, keep_models: bool = False) -> LPFi
     )
     if keep_models and centres:
         out.models = {key: np.concatenate(placed[key]) for key in ("beta", "P", "transform")}
+        out.models["offset"] = offsets
         out.models["center_features"] = cfeat
     return out
 
@@ -826,8 +841,10 @@ def _place_centres(frame: _Frame, acc: _Accumulator, params: Params, chunk: int,
     accumulated into ``acc``.  The last pass (g = 1) covers every pixel.
 
     Returns (per-chunk lists ``centers`` (n, 2), ``r_opt``, ``rank``,
-    ``xi_opt`` and, with ``keep_models``, ``beta``, ``P``, ``transform``; the
-    number of passes that placed centres).
+    ``xi_opt``, the models as :func:`_mean_offsets` re-evaluates them (``grad``
+    (n, 3, D) slopes in ``x - x_c``, ``b0`` (n, 3) intercepts, ``lower``
+    (n, 3) bounds) and, with ``keep_models``, ``beta``, ``P``, ``transform``;
+    the number of passes that placed centres).
     """
     h, w = frame.h, frame.w
     radius = int(params.radius)
@@ -838,7 +855,7 @@ def _place_centres(frame: _Frame, acc: _Accumulator, params: Params, chunk: int,
     # rows per chunk: keep the scattered band (and the bincount temporaries of
     # ``_Accumulator.add``, 8 bytes per band pixel) under ~2^17 pixels
     band_rows = max(1, (1 << 17) // frame.wp - 2 * radius)
-    kept = ("r_opt", "rank", "xi_opt") + (("beta", "P", "transform") if keep_models else ())
+    kept = ("r_opt", "rank", "xi_opt", "grad", "b0", "lower") + (("beta", "P", "transform") if keep_models else ())
     placed = {key: [] for key in ("centers",) + kept}
     passes = 0
     for g in _granularities(params.granularity, radius):
@@ -860,6 +877,86 @@ def _place_centres(frame: _Frame, acc: _Accumulator, params: Params, chunk: int,
             s0 = s1
         covered = acc.predicted()
     return placed, passes
+
+
+#: the blend's mean correction of a model (:func:`_mean_offsets`) is at most this
+#: many standard errors of its window mean, ``sqrt(s_typ / |k|)``
+OFFSET_LIMIT = 3.0
+
+
+def _mean_offsets(frame: _Frame, acc: _Accumulator, placed: dict, radius: int, chunk: int) -> np.ndarray:
+    """Re-blend every model with its intercept moved so that its residual,
+    weighted by its share of the final blend, is zero; returns the offsets
+    (M, 3) and rewrites ``acc.pred`` with the corrected predictions.
+
+    Why: a least-squares model with an intercept keeps its window's sum
+    (residuals sum to 0), but in the blend model c contributes to pixel i
+    only its share ``a_ci = w_ci / sum_c' w_c'i`` (:func:`blend_weights`);
+    the image's sum is the input's minus ``sum_c sum_i a_ci (y_i - f_c(x_i))``,
+    and that is not 0 where shares and residuals correlate: a model spreads a
+    bright pixel over its window, keeps a large share at the bright pixel and
+    a small one at neighbours that their own (more accurate) models predict,
+    so the blend darkens (Sec. 5.1's plain average too: 4.9 % on the glossy
+    sample scene).  The offset ``m_c = sum_i a_ci w_i (y_i - f_c(x_i)) /
+    sum_i a_ci w_i`` (w_i: usable pixels) is the intercept of the least
+    squares fit weighted by the final shares (slopes kept); with it the
+    blend keeps the input's sum exactly.  Ours (the paper averages as
+    fitted).  It is bounded by ``OFFSET_LIMIT`` standard errors of the
+    window mean, ``sqrt(s_typ / |k|)`` (s_typ the typical variance at the
+    centre, 0 where unknown): a larger weighted residual is made by outliers
+    (fireflies) that the fit treats as noise, and spreading their energy
+    over the window costs more error than it saves (docs/notes/lp.md).
+    Corrected predictions are bounded below as before (:func:`_lower_bound`).
+    """
+    dy, dx, ring, _ = ring_layout(radius)
+    k = len(ring)
+    offs = dy * frame.wp + dx
+    dist = ring.astype(np.float64)
+    positions = np.arange(k)
+    nf = frame.dim - 2
+    wsum = acc.wsum
+    acc.pred[...] = 0.0
+    out = []
+    for centers, r_opt, xi_opt, grad, b0, lower in zip(placed["centers"], placed["r_opt"], placed["xi_opt"],
+                                                       placed["grad"], placed["b0"], placed["lower"]):
+        flat = frame.flat(centers[:, 0], centers[:, 1])
+        offset = np.zeros((len(flat), 3))
+        for s0 in range(0, len(flat), chunk):
+            sl = slice(s0, min(s0 + chunk, len(flat)))
+            index = flat[sl, None] + offs[None, :]
+            n = len(index)
+            x = np.empty((n, frame.dim, k))
+            x[:, 0], x[:, 1] = dy, dx
+            if nf:
+                x[:, 2:] = np.swapaxes(np.take(frame.planes[:nf], index, axis=1), 0, 1)
+            fvalid = np.take(frame.planes[frame.c_f], index)
+            x -= x[:, :, :1].copy()
+            pred = np.matmul(grad[sl], x)                                 # (N, 3, K), Eq. 1 as fitted
+            pred *= fvalid[:, None, :]
+            pred += b0[sl, :, None]
+            del x
+            usable = np.take(frame.planes[frame.c_w], index)
+            lo = int(index.min())
+            span = int(index.max()) + 1 - lo
+            for c in range(3):
+                r = r_opt[sl, c]
+                inside = positions[None, :] < ((2 * r + 1) ** 2)[:, None]
+                wt = blend_weights(dist[None, :], r[:, None].astype(np.float64), xi_opt[sl, c, None]) * inside
+                total = np.take(wsum[c], index)
+                share = wt / np.where(total > 0, total, 1.0) * usable
+                yc = np.take(frame.planes[frame.c_y + c], index)
+                den = share.sum(axis=1)
+                num = (share * (yc - pred[:, c])).sum(axis=1)
+                m = np.where(den > 0, num / np.where(den > 0, den, 1.0), 0.0)
+                typ = frame.var_typical[c, index[:, 0]].astype(np.float64)
+                cnt = np.maximum((usable * inside).sum(axis=1), 1.0)
+                cap = np.where(np.isfinite(typ), OFFSET_LIMIT * np.sqrt(np.maximum(typ, 0.0) / cnt), 0.0)
+                m = np.clip(m, -cap, cap)
+                offset[sl, c] = m
+                val = np.maximum(pred[:, c] + m[:, None], lower[sl, c, None])
+                acc.pred[c, lo:lo + span] += np.bincount((index - lo)[inside], (val * wt)[inside], span)
+        out.append(offset)
+    return np.concatenate(out) if out else np.zeros((0, 3))
 
 
 #: a pixel counts as predicted (Sec. 5.1) when its models' error is at most this

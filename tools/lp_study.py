@@ -1,7 +1,9 @@
 """LP measurements (docs/notes/lp.md): the sample scenes' low-spp buffers
-against the cached 1024-spp references, before/after a change of core/lp.py.
+against references (/work/refs' renders, else private ones from ``refs``),
+before/after a change of core/lp.py.
 
   python tools/lp_study.py render                      # cache buffers (8, 16 spp, 4 subsets)
+  python tools/lp_study.py refs [--ref-spp 1024]       # private references where /work/refs has none
   python tools/lp_study.py quality [--before DIR] [--spps 8,16] [--scenes ...]
   python tools/lp_study.py speed [--before DIR]         # 512x512 (cornell 16 spp tiled 4x4)
 
@@ -70,6 +72,32 @@ def render(scenes, spps, seed=0, subsets=4):
             print(f"{s} {spp} spp -> {cache_path(s, spp, seed)}", flush=True)
 
 
+def render_refs(scenes, spp=1024, seed=1):
+    """Private references where /work/refs has none: ``spp`` samples of each
+    scene with another seed than the inputs' (one subset), the colour mean
+    saved as ``CACHE/<scene>.ref<spp>.npy``."""
+    import bpy
+    from cycles_adaptive.addon.executor import CyclesExecutor
+    from cycles_adaptive.bench import references as refs
+    from cycles_adaptive.core.buffers import Buffers
+    from cycles_adaptive.core.pipeline import render_subsets
+    os.makedirs(CACHE, exist_ok=True)
+    for s in scenes:
+        path = os.path.join(CACHE, f"{s}.ref{spp}.npy")
+        if os.path.exists(path):
+            continue
+        refs.open_scene(refs.scene_path(s), force=True)
+        scene, vl = bpy.context.scene, bpy.context.view_layer
+        scene.render.resolution_percentage = 100
+        t = time.perf_counter()
+        with CyclesExecutor(scene, vl, (), seed=seed) as exe:
+            h, w = exe.size
+            buf = Buffers.empty(h, w, ("alpha",))
+            render_subsets(exe, buf, spp, 1, scene.frame_current)
+        np.save(path, buf.color.mean)
+        print(f"{s} reference {spp} spp -> {path} ({time.perf_counter() - t:.0f} s)", flush=True)
+
+
 def find(scene, spp, seed=0):
     for root in (CACHE,) + OTHER_CACHES:
         p = cache_path(scene, spp, seed, root)
@@ -84,8 +112,20 @@ def load(scene, spp, seed=0):
 
 
 def reference(scene, shape):
+    """(reference image, its name): /work/refs' 1024-spp render when there is
+    one, else the private one of ``refs`` (CACHE/<scene>.ref<spp>.npy, the
+    most samples), else (None, "none")."""
     from cycles_adaptive.core.io import read_reference
-    return read_reference(os.path.join(REFS, f"{scene}.f0001.r100.s1024.exr"), shape)
+    import glob
+    shared = sorted(glob.glob(os.path.join(REFS, f"{scene}.f0001.r100.s*.exr")),
+                    key=lambda p: int(p.rsplit(".s", 1)[1].split(".")[0]))
+    if shared:
+        return read_reference(shared[-1], shape), os.path.basename(shared[-1])
+    own = sorted(glob.glob(os.path.join(CACHE, f"{scene}.ref*.npy")),
+                 key=lambda p: int(p.rsplit(".ref", 1)[1].split(".")[0]))
+    if own:
+        return np.load(own[-1]), os.path.basename(own[-1])
+    return None, "none"
 
 
 def load_before(root):
@@ -135,7 +175,10 @@ def quality(mods, spps=(8, 16), scenes=SCENES):
                 print(f"{s} {spp}: no buffers (run `render`)")
                 continue
             buf = load(s, spp)
-            ref = reference(s, buf.shape)
+            ref, ref_name = reference(s, buf.shape)
+            if ref is None:
+                print(f"{s} {spp}: no reference (run `refs`); relMSE and error figures are against the input")
+                ref = buf.color.mean
             color, var, feats, fvars = lp._inputs(buf)
             for label, mod in mods:
                 t = time.perf_counter()
@@ -146,7 +189,8 @@ def quality(mods, spps=(8, 16), scenes=SCENES):
                       f"bright {100 * f['bright']:+.2f}% min {f['min']:+.3f} (ref {f['ref_at_min']:.3f}) "
                       f"neg {f['neg_px']:4d} corr {f['corr']:.2f} corr8 {f['corr8']:.2f} "
                       f"est/true8 {f['ratio8']:.2f} centres {100 * f['centres']:.1f}% "
-                      f"r {f['radius_hist']} {sec:.1f}s", flush=True)
+                      f"r {f['radius_hist']} {sec:.1f}s [{ref_name if ref is not buf.color.mean else 'no ref'}]",
+                      flush=True)
 
 
 def speed(mods, scene="cornell", spp=16, reps=4):
@@ -174,7 +218,8 @@ def speed(mods, scene="cornell", spp=16, reps=4):
 
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("command", choices=("render", "quality", "speed"))
+    ap.add_argument("command", choices=("render", "refs", "quality", "speed"))
+    ap.add_argument("--ref-spp", type=int, default=1024, help="samples of the private references (refs)")
     ap.add_argument("--spps", default="8,16")
     ap.add_argument("--scenes", nargs="*", default=list(SCENES))
     ap.add_argument("--before", default=None, help="another checkout whose LP runs on the same inputs")
@@ -182,6 +227,9 @@ def main(argv=None):
     spps = tuple(int(x) for x in a.spps.split(","))
     if a.command == "render":
         render(a.scenes, spps)
+        return 0
+    if a.command == "refs":
+        render_refs(a.scenes, a.ref_spp)
         return 0
     mods = ([("before", load_before(a.before))] if a.before else []) + [("after", lp)]
     if a.command == "speed":

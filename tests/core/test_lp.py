@@ -371,10 +371,12 @@ def test_estimated_error_correlates_with_true_error():
 
 def test_accumulation_matches_explicit_per_centre_predictions():
     """Eq. 1 predictions of every centre over its window (bounded below by
-    min(0, window minimum)), blended with the weights
-    ``((r + 1 - d) / (r + 1))^2 / xi``, and the per-pixel error, Sec. 5.2
-    reduction and sampling map (``rho = Delta xi / (f^2 + epsilon)``),
-    recomputed centre by centre, pixel by pixel, from the models alone."""
+    min(0, window minimum)), with the blend's mean offset (the share-weighted
+    mean residual, at most ``OFFSET_LIMIT`` standard errors), blended with
+    the weights ``((r + 1 - d) / (r + 1))^2 / xi``, and the per-pixel error,
+    Sec. 5.2 reduction and sampling map (``rho = Delta xi / (f^2 +
+    epsilon)``), recomputed centre by centre, pixel by pixel, from the models
+    alone."""
     h, w = 17, 13
     feats = scene_features(h, w, seed=12)
     truth = 0.5 * feats["albedo"] + 0.2 * feats["normal"][..., 2:3]
@@ -391,23 +393,47 @@ def test_accumulation_matches_explicit_per_centre_predictions():
     cnt = np.zeros((h, w, 3))
     m = fit.models
     big = params.radius
-    for i, (cy, cx) in enumerate(fit.centers):
-        window = color[max(cy - big, 0):cy + big + 1, max(cx - big, 0):cx + big + 1]
-        low = np.minimum(window.reshape(-1, 3).min(axis=0), 0.0)
+    typical = np.stack([np.median(np.pad(var[..., c], 1, mode="edge")[
+        np.arange(h)[:, None, None, None] + np.arange(3)[None, None, :, None],
+        np.arange(w)[None, :, None, None] + np.arange(3)[None, None, None, :]].reshape(h, w, 9), axis=-1)
+        for c in range(3)], axis=-1)
+
+    def window(i, c):
+        cy, cx = fit.centers[i]
+        r = fit.center_radius[i, c]
+        for yy in range(max(cy - r, 0), min(cy + r + 1, h)):
+            for xx in range(max(cx - r, 0), min(cx + r + 1, w)):
+                x = np.concatenate([[yy - cy, xx - cx], raw[yy, xx] - raw[cy, cx]])
+                zv = np.concatenate([[1.0], x @ m["transform"][i]])
+                d = max(abs(yy - cy), abs(xx - cx))
+                wt = ((r + 1.0 - d) / (r + 1.0)) ** 2 / min(max(fit.center_error[i, c], 1e-30), 1e30)
+                yield yy, xx, wt, m["beta"][i, c] @ zv
+
+    for i in range(len(fit.centers)):
         for c in range(3):
-            r = fit.center_radius[i, c]
+            for yy, xx, wt, _ in window(i, c):
+                wsum[yy, xx, c] += wt
+    offset = np.zeros((len(fit.centers), 3))
+    for i in range(len(fit.centers)):
+        for c in range(3):
+            num = den = k = 0.0
+            for yy, xx, wt, f in window(i, c):
+                a = wt / wsum[yy, xx, c]
+                num, den, k = num + a * (color[yy, xx, c] - f), den + a, k + 1
+            cap = lp.OFFSET_LIMIT * np.sqrt(typical[tuple(fit.centers[i])][c] / k)
+            offset[i, c] = np.clip(num / den, -cap, cap)
+    assert np.allclose(m["offset"], offset, rtol=1e-9, atol=1e-12)
+    assert np.any(np.abs(offset) > 0)
+    for i, (cy, cx) in enumerate(fit.centers):
+        win = color[max(cy - big, 0):cy + big + 1, max(cx - big, 0):cx + big + 1]
+        low = np.minimum(win.reshape(-1, 3).min(axis=0), 0.0)
+        for c in range(3):
             xi = fit.center_error[i, c]
-            for yy in range(max(cy - r, 0), min(cy + r + 1, h)):
-                for xx in range(max(cx - r, 0), min(cx + r + 1, w)):
-                    x = np.concatenate([[yy - cy, xx - cx], raw[yy, xx] - raw[cy, cx]])
-                    zv = np.concatenate([[1.0], x @ m["transform"][i]])
-                    d = max(abs(yy - cy), abs(xx - cx))
-                    wt = ((r + 1.0 - d) / (r + 1.0)) ** 2 / min(max(xi, 1e-30), 1e30)
-                    pred[yy, xx, c] += wt * max(m["beta"][i, c] @ zv, low[c])
-                    err[yy, xx, c] += wt * xi
-                    dxi[yy, xx, c] += wt * xi * buf.n[yy, xx] ** (-4.0 / (fit.center_rank[i] + 4))
-                    wsum[yy, xx, c] += wt
-                    cnt[yy, xx, c] += 1
+            for yy, xx, wt, f in window(i, c):
+                pred[yy, xx, c] += wt * max(f + offset[i, c], low[c])
+                err[yy, xx, c] += wt * xi
+                dxi[yy, xx, c] += wt * xi * buf.n[yy, xx] ** (-4.0 / (fit.center_rank[i] + 4))
+                cnt[yy, xx, c] += 1
     assert np.all(cnt > 0)
     assert np.allclose(fit.image, pred / wsum, rtol=1e-9, atol=1e-12)
     # (the weighted error sums are float32: 1e-6)
@@ -520,7 +546,9 @@ def test_pixels_without_samples_are_predicted_from_their_neighbours():
 
 def test_firefly_stays_local_and_finite():
     """A single 1e6 sample: output finite; it changes the models whose window
-    holds it (radius R) and, through coverage, at most one more R per pass."""
+    holds it (radius R) and, through coverage, at most one more R per pass;
+    the blend's mean offsets (which read the blend weights over a model's
+    window, set by the models overlapping it) reach two more R."""
     h, w = 64, 64
     feats = scene_features(h, w, seed=22)
     truth = 0.7 * feats["albedo"]
@@ -532,7 +560,7 @@ def test_firefly_stays_local_and_finite():
     fire = Buffers.from_subsets(colors, [4] * 4, [feats] * 4)
     a, b = lp.reconstruct(clean, params), lp.reconstruct(fire, params)
     assert np.all(np.isfinite(b.image)) and np.all(np.isfinite(b.error))
-    reach = (b.info["passes"] + 1) * 3
+    reach = (b.info["passes"] + 3) * 3
     yy, xx = np.mgrid[0:h, 0:w]
     far = np.maximum(np.abs(yy - 32), np.abs(xx - 32)) > reach
     assert far.sum() > 0.5 * h * w
