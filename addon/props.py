@@ -17,6 +17,8 @@ from ..core import methods
 from ..core.pipeline import Options, option_fields
 
 METHOD_ITEMS = [
+    ("auto", "Automatic", "Chooses per scene, from the first pass's samples, the reconstruction "
+     "(sample mean, OIDN, LP, AWR, RHF) and sampling with the best predicted speed for its error"),
     ("var", "Variance (Schalk 2018)", "Welford variance sampler with min/max spp; no reconstruction"),
     ("awr", "Adaptive wavelets (Overbeck 2009)", "Wavelet-domain sampling and soft-threshold reconstruction"),
     ("lp", "Linear predictions (Moon 2015)", "Local linear models over features with adaptive windows"),

@@ -413,7 +413,77 @@ def evaluate_targets(res: dict) -> list:
                                  "oracle maps >= 1.3x lower relMSE than uniform sampling with the same "
                                  "reconstruction (lp, awr; " + ", ".join(LOCALISED_SCENES) + ")"))
     out.append(loop_speed_target(scenes))
+    out.extend(auto_targets(scenes))
+    out.extend(oidn_targets(scenes))
     return out
+
+
+def _by_budget(d: dict) -> dict:
+    """budget -> the scene's successful runs at it."""
+    out = {}
+    for r in d["runs"]:
+        if r.get("status") == "ok":
+            out.setdefault(r.get("budget"), []).append(r)
+    return out
+
+
+def auto_targets(scenes: dict) -> list:
+    """``auto`` >= 0.95x the best equal-error speed-up of every other run
+    (our methods, their uniform-sampling variants, the peers) on each scene
+    and budget, and >= 1.0x plain Cycles."""
+    det, ok_best, ok_plain, seen = [], True, True, False
+    for s, d in scenes.items():
+        for budget, rs in sorted(_by_budget(d).items(), key=lambda kv: (kv[0] is None, kv[0])):
+            auto = next((r for r in rs if r["kind"] == "method" and r["name"] == "auto"), None)
+            if auto is None or auto.get("speedup") is None:
+                continue
+            others = [r for r in rs if r is not auto and r.get("speedup") is not None
+                      and r["kind"] in ("method", "uniform_sampling", "peer")]
+            if not others:
+                continue
+            seen = True
+            best = max(others, key=lambda r: r["speedup"])
+            ratio = auto["speedup"] / best["speedup"]
+            ok_best &= ratio >= 0.95
+            ok_plain &= auto["speedup"] >= 1.0
+            det.append(f"{s} @ {budget}: auto ({auto.get('chosen', '?')}) {auto['speedup']:.2f}x, best "
+                       f"{best['name']} {best['speedup']:.2f}x: {ratio:.2f} of it")
+    return [{"target": "auto >= 0.95x the best speed-up of all our methods and the peers on each scene "
+                       "and budget", "met": ok_best if seen else None, "detail": det},
+            {"target": "auto >= 1.0x plain Cycles on each scene and budget", "met": ok_plain if seen else None,
+             "detail": [x.split(", best")[0] for x in det]}]
+
+
+def oidn_targets(scenes: dict) -> list:
+    """``oidn`` (adaptive sampling for the denoised image) against uniform
+    sampling + OIDN through our loop (``uniform-oidn``, equal spp) and against
+    Cycles' own OIDN (the ``oidn`` peer, equal error)."""
+    ratios, det1, det2, ok_peer, seen_peer = [], [], [], True, False
+    low = False
+    for s, d in scenes.items():
+        for budget, rs in sorted(_by_budget(d).items(), key=lambda kv: (kv[0] is None, kv[0])):
+            ours = next((r for r in rs if r["kind"] == "method" and r["name"] == "oidn"), None)
+            if ours is None:
+                continue
+            uni = next((r for r in rs if r["kind"] == "uniform_sampling" and r["name"] == "uniform-oidn"), None)
+            if uni is not None and ours.get("relmse") and uni.get("relmse"):
+                g = uni["relmse"] / ours["relmse"]
+                ratios.append(g)
+                det1.append(f"{s} @ {budget}: {g:.2f}x lower relMSE than uniform + OIDN")
+            peer = next((r for r in rs if r["kind"] == "peer" and r["name"] == "oidn"), None)
+            if peer is not None and ours.get("speedup") and peer.get("speedup"):
+                seen_peer = True
+                q = ours["speedup"] / peer["speedup"]
+                ok_peer &= q >= 1.2
+                low |= q < 1.0
+                det2.append(f"{s} @ {budget}: {q:.2f}x the speed-up of Cycles' OIDN")
+    gm = _gmean(ratios)
+    return [{"target": "oidn (adaptive) >= 1.3x lower relMSE than uniform + OIDN at equal spp (geometric "
+                       "mean over scenes and budgets)", "met": (gm >= 1.3) if gm else None,
+             "detail": det1 + ([f"geometric mean {gm:.2f}x"] if gm else [])},
+            {"target": "oidn (adaptive) >= 1.2x the equal-error speed-up of Cycles' own OIDN on every scene "
+                       "and budget, never below 1.0x", "met": (ok_peer and not low) if seen_peer else None,
+             "detail": det2}]
 
 
 def _where(s, r):

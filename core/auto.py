@@ -82,7 +82,7 @@ SAMPLINGS = ("auto", "uniform", "adaptive")
 #: 8 and 16 spp of the benchmark's uniform-<method> runs, median over the five
 #: still sample scenes (docs/notes/auto.md); oidn: core.oidn.RATE (measured
 #: over 4-32 spp); the sample mean's is measured per scene (Buffers.exponent)
-RATES = {"oidn": 0.9, "lp": 1.15, "awr": 0.93, "rhf": 0.95}
+RATES = {"oidn": 0.9, "lp": 1.16, "awr": 0.95, "rhf": 0.95}
 
 #: filter calls one reconstruction makes, relative to what the tiles time:
 #: oidn's reconstruct denoises the whole and both halves (its error

@@ -60,7 +60,8 @@ class Options:
     ``params`` and ``features`` are set by the caller, not generated.
     """
 
-    method: str = param("lp", "adaptive method: where samples go and how the image is reconstructed",
+    method: str = param("auto", "adaptive method: where samples go and how the image is "
+                        "reconstructed (auto: chosen per scene from the first pass)",
                         label="Method", cli=False, ui=False)
     spp: float = param(16.0, "mean samples per pixel of the whole run (initial pass included); more "
                        "is slower and more accurate", 1e-6, None, label="Samples per Pixel",

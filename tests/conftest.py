@@ -11,3 +11,10 @@ sys.path.insert(0, os.path.join(ROOT, "tests"))
 from launch import load_package  # noqa: E402
 
 load_package()
+
+# auto's measured reconstruction costs (core/auto.py) go to one folder per test
+# session, shared with the CLI subprocesses, never to the user's cache
+if "CYCLES_ADAPTIVE_CACHE" not in os.environ:
+    import tempfile
+
+    os.environ["CYCLES_ADAPTIVE_CACHE"] = tempfile.mkdtemp(prefix="cycles-adaptive-test-cache-")
