@@ -84,9 +84,9 @@ SAMPLINGS = ("auto", "uniform", "adaptive")
 #: over 4-32 spp); the sample mean's is measured per scene (Buffers.exponent)
 RATES = {"oidn": 0.9, "lp": 1.16, "awr": 0.95, "rhf": 0.95}
 
-#: filter calls one reconstruction makes, relative to what the tiles time:
-#: oidn's reconstruct denoises the whole and both halves (its error
-#: estimate); the tiles time one call
+#: filter calls one reconstruction makes, relative to the one call the cost
+#: model times: oidn's reconstruct denoises the whole and both halves (its
+#: error estimate), except uniform + OIDN as auto runs it (candidate_params)
 CALLS = {"oidn": 3.0}
 
 CV_MARGIN = 8  # pixels of context around each scored tile
@@ -328,14 +328,27 @@ class Context:
     max_pixel_share: float
     min_task_size: int
     exponent: float = 1.0
+    target_error: float = 0.0
 
 
 @dataclass
 class Selection:
-    """The choice: the Method to run and the report (JSON-able)."""
+    """The choice: the Method to run, its parameters and the report
+    (JSON-able; ``report["params"]`` repeats the parameters for ``--resume``)."""
 
     method: object
     report: dict = field(default_factory=dict)
+    params: dict = field(default_factory=dict)
+
+
+def candidate_params(reconstruction: str, sampling: str, target_error: float = 0.0) -> dict:
+    """Parameters auto runs a candidate with: the defaults, except that
+    uniform sampling + OIDN skips OIDN's own error estimate (two more calls
+    per reconstruction, which only an adaptive sampler or a target needs):
+    what Cycles' Denoise costs, one call."""
+    if reconstruction == "oidn" and sampling == "uniform":
+        return {"adaptive": False, "error_estimate": bool(target_error > 0)}
+    return {}
 
 
 # ------------------------------------------------------------- prediction
@@ -513,10 +526,11 @@ def predict(scores: dict, ctx: Context, rel_var, params: Params, costs: dict) ->
     for name, s in scores.items():
         rate = beta if name == "mean" else RATES[name]
         e_uni = s["relmse_half"] * (n_half / ctx.spp) ** rate
-        recon = 0.0 if name == "mean" else \
-            reconstruction_seconds(costs[name], ctx.pixels) * CALLS.get(name, 1.0)
+        one = 0.0 if name == "mean" else reconstruction_seconds(costs[name], ctx.pixels)
         for sampling in samplings:
             mod = method(name, sampling)
+            cheap = candidate_params(name, sampling, ctx.target_error).get("error_estimate", True) is False
+            recon = one * (1.0 if cheap else CALLS.get(name, 1.0))
             if sampling == "uniform":
                 e = e_uni
                 # the rest of the budget in one full-frame render, then one reconstruction
@@ -553,10 +567,11 @@ def select(crops: list, subset_data: list, ctx: Context, rel_var, params: Params
     if not crops or len(subset_data[0]) < 4:
         rec = "oidn" if "oidn" in names else (names[1] if len(names) > 1 else "mean")
         m = method(rec, "uniform")
-        return Selection(m, {"chosen": m.NAME, "candidates": [],
+        params = candidate_params(rec, "uniform", ctx.target_error)
+        return Selection(m, {"chosen": m.NAME, "params": params, "candidates": [],
                              "why": f"the initial pass has {len(subset_data[0]) if subset_data else 0} "
                                     f"sample subsets; cross-validation needs 4 (--subsets 4): "
-                                    f"{m.NAME} by default"})
+                                    f"{m.NAME} by default"}, params)
     t0 = time.perf_counter()
     t_plain = ctx.render_seconds / max(ctx.initial_spp, 1e-9) * ctx.spp
     tiles = []
@@ -568,14 +583,15 @@ def select(crops: list, subset_data: list, ctx: Context, rel_var, params: Params
     rows = predict(scores, ctx, rel_var, p, reconstruction_costs([n for n in names if n != "mean"]))
     best = rows[0]
     chosen = method(best["reconstruction"], best["sampling"])
+    params = candidate_params(best["reconstruction"], best["sampling"], ctx.target_error)
     runner = rows[1] if len(rows) > 1 else None
     why = (f"highest predicted equal-error speed-up over plain Cycles: {best['speedup']:.2f}x "
            f"(relMSE {best['relmse']:.2e} in {best['seconds']:.2f} s)")
     if runner is not None:
         why += f"; next {runner['name']} {runner['speedup']:.2f}x"
     why += f"; {len(tiles)} tile(s) cross-validated in {time.perf_counter() - t0:.2f} s"
-    return Selection(chosen, {"chosen": chosen.NAME, "candidates": rows, "why": why,
-                              "tiles": len(tiles), "seconds": time.perf_counter() - t0})
+    return Selection(chosen, {"chosen": chosen.NAME, "params": params, "candidates": rows, "why": why,
+                              "tiles": len(tiles), "seconds": time.perf_counter() - t0}, params)
 
 
 # ---------------------------------------------------- Method members

@@ -132,6 +132,11 @@ class Params:
     uniform_fraction: float = param(0.0, "share of each round spread uniformly, a floor against "
                                     "an estimate that misses a region; higher is safer and less "
                                     "adaptive", 0.0, 1.0, label="Uniform Share")
+    error_estimate: bool = param(True, "estimate the denoised image's error from the two sample "
+                                 "halves (two more OIDN calls per reconstruction; the adaptive sampler "
+                                 "needs it); off: one call, and the Error pass holds the sample mean's "
+                                 "variance, a bound for the denoised error away from edges",
+                                 label="Error Estimate")
     backend: str = param("auto", "OIDN implementation: pyoidn (the pip wheel), blender "
                          "(Blender's compositor Denoise node), auto: pyoidn when installed",
                          choices=BACKENDS, label="Backend")
@@ -142,6 +147,9 @@ class Params:
             value = getattr(self, name)
             if value not in choices:
                 raise ValueError(f"oidn parameter {name}={value!r} must be one of {', '.join(choices)}")
+        if self.adaptive and not self.error_estimate:
+            raise ValueError("oidn parameter error_estimate=False needs adaptive=False: the adaptive "
+                             "sampler places samples by that estimate")
 
 
 @dataclass
@@ -478,6 +486,12 @@ def reconstruct(buf: Buffers, params: Params | None = None) -> MethodResult:
     mean (none where no variance is known)."""
     p = _params(params)
     feats = {k: buf.features[k].mean for k in PASSES if k in buf.features}
+    if not p.error_estimate:  # one call; the error is the undenoised variance (see Params)
+        res = estimate(buf.color.mean, feats, None, 0.0, 0.0, p)
+        var = buf.variance_of_mean()
+        res.error = np.where(np.isfinite(var), var, 0.0).mean(axis=-1)
+        res.info["error"] = "sample variance (error_estimate off)"
+        return res
     halves = buf.halves()
     if halves is not None and np.any((halves[0][0] > 0) & (halves[1][0] > 0)):
         (na, ca, fa), (nb, cb, fb) = halves

@@ -476,7 +476,7 @@ class AdaptiveRun:
                       pixels=self.pixels, render_seconds=self.timing.render, tasks=self.tasks_rendered,
                       iterations=opts.iterations, task_cost=opts.task_cost,
                       max_pixel_share=opts.max_pixel_share, min_task_size=opts.min_task_size,
-                      exponent=buf.exponent)
+                      exponent=buf.exponent, target_error=opts.target_error)
         crops = self.method.cv_regions(self.height, self.width, self.params)
         dropped = set(self.dropped)
         data = [[(c, {k: v for k, v in f.items() if k not in dropped}, n) for c, f, n in tile]
@@ -497,13 +497,13 @@ class AdaptiveRun:
         yield Progress("adapt", 0, self._fraction(), work.label, work=work)
         sel = work.result()
         self._cv = []
-        self._adopt(sel.method, sel.report)
+        self._adopt(sel.method, sel.report, sel.params)
         yield Progress("adapt", 0, self._fraction(), f"{self.options.method}: {sel.report['chosen']} "
                        f"({sel.report['why']})")
 
-    def _adopt(self, method, report: dict) -> None:
+    def _adopt(self, method, report: dict, params: dict | None = None) -> None:
         self.method = method
-        self.params = params_from_dict(method.Params, {})
+        self.params = params_from_dict(method.Params, params or {})
         self.selection = report
 
     def _shaped(self, counts: np.ndarray) -> np.ndarray:
@@ -682,7 +682,7 @@ class AdaptiveRun:
         sel = meta.get("selection")
         if sel and selects(self.method):  # the choice made before the checkpoint
             try:
-                self._adopt(self.method.resolve(sel["chosen"]), sel)
+                self._adopt(self.method.resolve(sel["chosen"]), sel, sel.get("params") or {})
             except (KeyError, TypeError, ValueError) as exc:
                 raise ValueError(f"{path}: checkpoint's choice is unreadable ({exc})") from None
         if meta.get("options") != _options_key(self.options) or meta.get("method") != self.method.NAME:

@@ -381,3 +381,24 @@ def test_adaptive_run_spends_the_budget_and_the_uniform_variant_samples_evenly(f
     for _ in uni.steps():
         pass
     assert (uni.buffers.n == 8).all() and uni.reconstruct().fit.halves == "split"
+
+
+def test_without_its_error_estimate_oidn_makes_one_call_and_bounds_the_error(monkeypatch):
+    from core import oidn
+    from core.buffers import Buffers
+    rng = np.random.default_rng(3)
+    h, w = 10, 12
+    feats = [{"albedo": np.full((h, w, 3), 0.5), "normal": np.dstack([np.zeros((h, w))] * 2 + [np.ones((h, w))])}
+             for _ in range(4)]
+    buf = Buffers.from_subsets([0.4 + 0.1 * rng.random((h, w, 3)) for _ in range(4)], [1] * 4, feats)
+    calls = []
+    monkeypatch.setattr(oidn, "oidn_filter", lambda c, a=None, n=None, **kw: calls.append(1) or np.asarray(c))
+    full = oidn.reconstruct(buf, oidn.Params(adaptive=False))
+    assert len(calls) == 3
+    calls.clear()
+    one = oidn.reconstruct(buf, oidn.Params(adaptive=False, error_estimate=False))
+    assert len(calls) == 1
+    np.testing.assert_array_equal(one.image, full.image)
+    np.testing.assert_allclose(one.error, buf.variance_of_mean().mean(axis=-1))
+    with pytest.raises(ValueError, match="needs adaptive=False"):
+        oidn.Params(error_estimate=False)
