@@ -182,7 +182,7 @@ def _remove(made: dict) -> None:
 def register() -> None:
     """Make Blender's OIDN the fallback of :mod:`core.oidn` (used only when
     ``pyoidn`` does not import)."""
-    oidn.register_backend(BACKEND, denoise)
+    oidn.register_backend(BACKEND, denoise, main_thread=True)  # bpy: Blender's main thread only
 
 
 def unregister() -> None:

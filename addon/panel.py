@@ -51,7 +51,10 @@ def summary_lines(settings) -> list:
     """The last run's summary as short lines for the panel."""
     if not settings.has_result:
         return []
-    lines = [f"{method_label(settings.last_method)}",
+    method = method_label(settings.last_method)
+    if settings.last_chosen:  # auto: the method it chose
+        method += f": {settings.last_chosen}"
+    lines = [method,
              f"{settings.last_spp:.1f} spp in {settings.last_seconds:.1f} s",
              f"Estimated relMSE {settings.last_error:.4g}"]
     if not settings.last_reconstructed:

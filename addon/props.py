@@ -139,6 +139,8 @@ class CYCLESADAPTIVE_PG_settings(bpy.types.PropertyGroup):
                                 description="Wall time of the run, outputs included")
     last_error: FloatProperty(name="Estimated Error", default=0.0, precision=5,
                               description="relMSE predicted by the run's own error estimate (no reference)")
+    last_chosen: StringProperty(name="Chosen", default="",
+                                description="What Automatic chose for the last run, and why")
     last_reconstructed: BoolProperty(name="Reconstructed", default=True,
                                      description="False after a cancel: the output is the sample mean")
     # progress, shown by the panel while the operator runs

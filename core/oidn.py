@@ -175,14 +175,33 @@ _DEVICE: dict = {}
 _FILTERS: dict = {}
 
 
-def register_backend(name: str, fn) -> None:
+_MAIN_THREAD: set = set()
+
+
+def register_backend(name: str, fn, main_thread: bool = False) -> None:
     """Register ``fn(color, albedo, normal, *, hdr, prefilter, quality) ->
-    (H, W, 3)`` as backend ``name`` (the Blender layer registers ``blender``)."""
+    (H, W, 3)`` as backend ``name`` (the Blender layer registers ``blender``);
+    ``main_thread``: it may only run on the application's main thread
+    (Blender's compositor), see :func:`needs_main_thread`."""
     _FALLBACKS[name] = fn
+    if main_thread:
+        _MAIN_THREAD.add(name)
+    else:
+        _MAIN_THREAD.discard(name)
 
 
 def unregister_backend(name: str) -> None:
     _FALLBACKS.pop(name, None)
+    _MAIN_THREAD.discard(name)
+
+
+def needs_main_thread(backend: str = "auto") -> bool:
+    """True when a call with ``backend`` would run a backend registered as
+    main-thread only (then a UI must not run it on a worker thread)."""
+    try:
+        return resolve_backend(backend) in _MAIN_THREAD
+    except (OIDNError, ValueError):
+        return False
 
 
 def pyoidn_available() -> bool:

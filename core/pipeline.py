@@ -127,19 +127,25 @@ def option_fields(where: str) -> list:
 
 
 class Work:
-    """A pure computation the loop is about to wait for (no bpy inside).
+    """A pure computation the loop is about to wait for (no bpy inside, unless
+    ``main_thread``).
 
     The loop yields it in a :class:`Progress` and then calls :meth:`result`, so
     a consumer that ignores it gets the computation inline, and one that keeps a
     UI responsive may call :meth:`run` on a worker thread (numpy releases the
-    GIL) and resume the loop once :attr:`done`.  ``run`` is idempotent and
-    thread-safe: a second caller waits for the first; an exception is stored
-    and re-raised by :meth:`result`.
+    GIL) and resume the loop once :attr:`done`; not where ``main_thread`` is
+    True (it calls Blender: the compositor's OIDN where pyoidn is missing),
+    which must run inline.  ``run`` is idempotent and thread-safe: a second
+    caller waits for the first; an exception is stored and re-raised by
+    :meth:`result`.
     """
 
-    def __init__(self, fn, label: str = ""):
+    def __init__(self, fn, label: str = "", main_thread: bool = False):
         self.fn = fn
         self.label = label
+        #: the computation calls something that only runs on the main thread
+        #: (Blender's own OIDN): a consumer must run it inline
+        self.main_thread = bool(main_thread)
         self._lock = threading.Lock()
         self._done = threading.Event()
         self._value = None
@@ -363,7 +369,8 @@ class AdaptiveRun:
         Returns the number of tasks rendered (0: nothing to plan)."""
         overshoot_before = self.overshoot
         work = Work(lambda: self._adapt(budget),
-                    f"iteration {self.iteration + 1}: adapting ({self.method.NAME})")
+                    f"iteration {self.iteration + 1}: adapting ({self.method.NAME})",
+                    self.main_thread_only())
         yield Progress("adapt", self.iteration, self._fraction(), work.label, work=work)
         tasks, covered, counts = work.result()
         if not tasks:
@@ -447,7 +454,7 @@ class AdaptiveRun:
         the round's sampler.  Returns True once below."""
         samples = self.samples_rendered
         work = Work(lambda: self._timed_reconstruct(), f"iteration {self.iteration + 1}: estimating the "
-                    f"error ({self.method.NAME})")
+                    f"error ({self.method.NAME})", self.main_thread_only())
         yield Progress("adapt", self.iteration, self._fraction(), work.label, work=work)
         result = work.result()
         self._result = (samples, result)
@@ -493,13 +500,22 @@ class AdaptiveRun:
             self.timing.adapt += time.perf_counter() - t0
             return sel
 
-        work = Work(choose, f"choosing a method ({self.method.NAME})")
+        work = Work(choose, f"choosing a method ({self.method.NAME})", self.main_thread_only())
         yield Progress("adapt", 0, self._fraction(), work.label, work=work)
         sel = work.result()
         self._cv = []
         self._adopt(sel.method, sel.report, sel.params)
         yield Progress("adapt", 0, self._fraction(), f"{self.options.method}: {sel.report['chosen']} "
                        f"({sel.report['why']})")
+
+    def main_thread_only(self) -> bool:
+        """True when the method's computations may call OIDN through a
+        backend that runs only on the main thread (:func:`core.oidn.needs_main_thread`)."""
+        name = str(self.method.NAME)
+        if not (name == "auto" or "oidn" in name):
+            return False
+        from . import oidn
+        return oidn.needs_main_thread(getattr(self.params, "backend", "auto"))
 
     def _adopt(self, method, report: dict, params: dict | None = None) -> None:
         self.method = method

@@ -402,3 +402,26 @@ def test_without_its_error_estimate_oidn_makes_one_call_and_bounds_the_error(mon
     np.testing.assert_allclose(one.error, buf.variance_of_mean().mean(axis=-1))
     with pytest.raises(ValueError, match="needs adaptive=False"):
         oidn.Params(error_estimate=False)
+
+
+def test_a_main_thread_backend_marks_the_loops_work(monkeypatch):
+    """Where only a main-thread backend (Blender's compositor) is there, the
+    loop's Work of an OIDN method says so, so a UI runs it inline."""
+    from core import oidn
+    from core.pipeline import AdaptiveRun, Options
+    from conftest import FakeExecutor
+    monkeypatch.setattr(oidn, "pyoidn_available", lambda: False)
+    monkeypatch.setattr(oidn, "_FALLBACKS", {})
+    monkeypatch.setattr(oidn, "_MAIN_THREAD", set())
+    assert not oidn.needs_main_thread()
+    oidn.register_backend("blender", lambda c, a, n, **kw: np.asarray(c), main_thread=True)
+    assert oidn.needs_main_thread() and oidn.resolve_backend() == "blender"
+    h, w = 8, 8
+    feats = {"albedo": np.full((h, w, 3), 0.5), "normal": np.ones((h, w, 3)), "depth": np.ones((h, w, 1))}
+    run = AdaptiveRun(FakeExecutor(np.full((h, w, 3), 0.5), feats), Options(method="oidn", spp=8))
+    works = [p.work for p in run.steps() if p.work is not None]
+    assert works and all(wk.main_thread for wk in works)
+    lp = AdaptiveRun(FakeExecutor(np.full((h, w, 3), 0.5), feats), Options(method="lp", spp=8))
+    assert not any(p.work.main_thread for p in lp.steps() if p.work is not None)
+    oidn.unregister_backend("blender")
+    assert not oidn.needs_main_thread()
