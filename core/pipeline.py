@@ -265,6 +265,7 @@ class AdaptiveRun:
         self.selection: dict | None = None  # what a selecting method (auto) chose, for reports
         self.dropped: tuple = ()            # feature passes found to carry no information
         self._cv: list = []                 # initial subsets on a selecting method's tiles
+        self._initial_seconds: list = []    # render seconds of each initial subset
         self.target_met = False             # Options.target_error reached
         self.estimates: list = []           # (spp, estimated relMSE) at each target check
         self._result = None                 # (samples, MethodResult) of the last target check
@@ -408,7 +409,9 @@ class AdaptiveRun:
         for s, task in enumerate(tasks):
             if s and self._time_up():  # one subset at least, so there is an image
                 break
+            t0 = time.perf_counter()
             color, feats = self._render_task(task)
+            self._initial_seconds.append(time.perf_counter() - t0)
             meter.add(color, task.samples)
             for keep, (x0, y0, x1, y1) in zip(self._cv, crops):
                 keep.append((np.array(np.asarray(color)[y0:y1, x0:x1, :3], np.float64),
@@ -479,8 +482,13 @@ class AdaptiveRun:
         default parameters, and reports it in :attr:`selection`."""
         from .auto import Context
         opts, buf = self.options, self.buffers
+        # the first render of a session also builds the scene (BVH, textures):
+        # the others say what a render of this frame costs
+        secs = self._initial_seconds
+        steady = secs[1:] if len(secs) > 1 else secs
+        render_seconds = float(np.median(steady)) * len(secs) if steady else self.timing.render
         ctx = Context(spp=float(opts.spp), initial_spp=self.samples_rendered / self.pixels,
-                      pixels=self.pixels, render_seconds=self.timing.render, tasks=self.tasks_rendered,
+                      pixels=self.pixels, render_seconds=render_seconds, tasks=self.tasks_rendered,
                       iterations=opts.iterations, task_cost=opts.task_cost,
                       max_pixel_share=opts.max_pixel_share, min_task_size=opts.min_task_size,
                       exponent=buf.exponent, target_error=opts.target_error)
