@@ -90,6 +90,7 @@ RATES = {"oidn": 0.9, "lp": 1.16, "awr": 0.95, "rhf": 0.95}
 CALLS = {"oidn": 3.0}
 
 CV_MARGIN = 8  # pixels of context around each scored tile
+NOISELESS = 1e-10  # half-budget relMSE of the sample mean below which the image counts as noise-free
 
 
 @dataclass
@@ -532,9 +533,12 @@ def predict(scores: dict, ctx: Context, rel_var, params: Params, costs: dict) ->
     e_mean = scores["mean"]["relmse_half"] * (n_half / ctx.spp) ** beta
     samplings = ("uniform", "adaptive") if params.sampling == "auto" else (params.sampling,)
     rows = []
+    # a first pass without measurable noise leaves nothing to reconstruct:
+    # every candidate's error is the mean's, and time decides
+    noiseless = scores["mean"]["relmse_half"] <= NOISELESS
     for name, s in scores.items():
-        rate = beta if name == "mean" else RATES[name]
-        e_uni = s["relmse_half"] * (n_half / ctx.spp) ** rate
+        rate = beta if name == "mean" or noiseless else RATES[name]
+        e_uni = (scores["mean"] if noiseless else s)["relmse_half"] * (n_half / ctx.spp) ** rate
         one = 0.0 if name == "mean" else reconstruction_seconds(costs[name], ctx.pixels)
         for sampling in samplings:
             mod = method(name, sampling)
