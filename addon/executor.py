@@ -41,6 +41,12 @@ PASS_SOURCES = {
 }
 
 
+#: passes Cycles writes only in the render that holds sample 0 (a render with
+#: sample_offset > 0 leaves them 0; checked with bpy 4.5): taken from that
+#: render alone, never averaged with later ones (core.pipeline.merge_render)
+SAMPLE_ZERO_PASSES = ("position", "object_index")
+
+
 @contextlib.contextmanager
 def quiet_stdout():
     """Silence Cycles' per-render log lines ("Fra: ... Sample 3/4", "Saved:")
@@ -317,6 +323,8 @@ class CyclesExecutor:
             raise SceneError(f"border render gave {got}, expected {(h, w)} for {task}")
         feats = {}
         for f in self.features:
+            if f in SAMPLE_ZERO_PASSES and task.offset > 0:
+                continue  # not written by this render: the merge keeps the value of sample 0's
             names = PASS_SOURCES[f][0]
             missing = [n for n in names if n not in passes]
             if missing:

@@ -564,7 +564,7 @@ class AdaptiveRun:
 
     def _merge(self, task, color, feats) -> None:
         t0 = time.perf_counter()
-        merge_render(self.buffers, task, color, feats, constant=self.dropped)
+        merge_render(self.buffers, task, color, feats)
         self.tasks_rendered += 1
         self.timing.overhead += time.perf_counter() - t0
 
@@ -761,18 +761,21 @@ def subset_tasks(width: int, height: int, spp: int, subsets: int, frame: int = 0
     return tasks
 
 
-def merge_render(buffers: Buffers, task, color, features, constant=()) -> None:
+def merge_render(buffers: Buffers, task, color, features) -> None:
     """Merge one rendered task (an executor's ``(color, features)``) into
     ``buffers`` as one sample group over the task's rectangle.  Alpha
     (``color``'s 4th channel, 1 without one) rides along as the ``alpha``
-    pass; passes ``buffers`` does not keep are dropped; ``constant`` passes
-    missing from the render (no longer rendered: constant in this frame)
-    take their accumulated mean."""
+    pass; passes ``buffers`` does not keep are dropped.  A pass the render
+    does not carry keeps its accumulated mean where every pixel of the task
+    already has samples: a pass no longer rendered (constant in this frame),
+    or one Cycles writes only in the render holding sample 0 (Position,
+    IndexOB: ``addon/executor.py``); elsewhere it is an error (KeyError)."""
     color = np.asarray(color, np.float64)
     feats = dict(features)
     sl = (slice(task.y0, task.y1), slice(task.x0, task.x1))
-    for name in constant:
-        if name not in feats and name in buffers.features:
+    missing = [k for k in buffers.features if k not in feats and k != "alpha"]
+    if missing and np.all(buffers.n[sl] > 0):
+        for name in missing:
             feats[name] = buffers.features[name].mean[sl]
     if "alpha" not in feats:
         feats["alpha"] = color[:, :, 3:4] if color.shape[2] >= 4 else np.ones(color.shape[:2] + (1,))

@@ -25,9 +25,11 @@ It runs, per chunk of pixels: :func:`_frame_inputs` (y, its error, W, the
 background mask), :func:`previous_models` and :func:`search_origin` (where a
 pixel's model may come from, following the backward coordinates),
 :func:`best_previous` (the search above, with the position gate),
-:func:`carry_models` (Eq. 6 via :func:`rls_update`, the residual reset
-:func:`residual_reset`, the error estimate), :func:`new_models` (the
-initialisation) and :func:`_finish` (the output assembly).
+:func:`carry_models` (Eq. 6 via :func:`rls_update`, the resets
+:func:`residual_reset` and :func:`sample_reset`, the error estimate),
+:func:`new_models` (the initialisation), then over the whole frame
+:func:`safe_choice` (the output never expected to be worse than y(t)) and
+:func:`_finish` (the output assembly).
 
 Choices where the paper is silent (each tested)
 -----------------------------------------------
@@ -54,8 +56,26 @@ Choices where the paper is silent (each tested)
   lambda) + v)``, ``v`` the model's own noise variance (below), so a fresh
   model (large ``P``) is never dropped for learning its slope, and a sudden
   illumination change (a moving shadow) restarts the model instead of being
-  blurred in.  ``reset_sigma = 0`` turns it off.  Without any usable
-  candidate the pixel starts a new model (paper initialisation).
+  blurred in.  ``reset_sigma = 0`` turns it off; (c) the chosen model is
+  dropped when its prediction fails a chi-square test against the frame's own
+  samples (:func:`sample_reset`): ``sum_c (mean_c - pred_c)^2 / (V_c + (sigma^2
+  + (0.01 pred_c)^2) (1 + z^T P z / lambda) + v) > sample_gate`` (``V`` the
+  calibrated variance of the pixel mean, default 16.27 = the 0.999 quantile of
+  chi-square with 3 degrees of freedom).  The samples are independent of the
+  model and unfiltered, so a model that lags a moving highlight fails even where
+  y(t), spatially filtered, partly agrees with it.  ``sample_gate = 0`` turns
+  it off.  Without any usable candidate the pixel starts a new model (paper
+  initialisation).
+* **Never worse than the frame alone** (``safe_choice``, :func:`safe_choice`).
+  Gates that only catch significant misses still let a carried model with a
+  bias of one or two standard deviations through, and its output
+  ``(1 - g) pred + g y`` is then worse than y(t) (a model whose prediction
+  misses by k sigma has ``(1 - g)^2 k^2 sigma^2`` of squared bias against the
+  ``sigma^2`` of y).  So the output of each carried pixel is y(t) (with its
+  error) wherever the temporal error estimate, with this frame's excess
+  residuals (against y and against the samples, averaged over a
+  ``(2 bias_radius + 1)^2`` window) as the bias, is not below the window mean of
+  ``sigma^2``.  The models are kept either way: only the output changes.
 * **Error estimate** (the paper gives none).  With ``sigma_j^2`` the static
   estimate's error at frame j (LP's ``xi``; the variance of the mean with
   ``spatial = False``), treated as independent between frames, the covariance
@@ -95,8 +115,14 @@ PASSES = ("position", "depth")
 #: relative floor of the residual gate's noise level (1 % of the value)
 REL_FLOOR = 0.01
 
+#: the safe choice counts this frame's pooled excess residual as bias only beyond
+#: BIAS_Z standard errors of its noise (``sqrt(2 / (3 N))`` times the pooled noise
+#: level for N pixels of 3 channels): clamping the noisy pooled mean at 0 alone
+#: reads noise as bias in still scenes (docs/notes/temporal.md)
+BIAS_Z = 1.0
+
 #: counters of ``TemporalResult.info`` (fractions of the frame's pixels)
-COUNTS = ("carried", "new", "reset_position", "reset_residual")
+COUNTS = ("carried", "new", "reset_position", "reset_residual", "reset_samples", "fallback")
 
 
 @dataclass
@@ -118,6 +144,17 @@ class Params:
     reset_sigma: float = param(
         4.0, "restart a model whose prediction misses by more than this many standard "
         "deviations (sudden lighting changes); 0 = never (the literal paper)", 0.0, 100.0, label="Reset Threshold")
+    sample_gate: float = param(
+        16.27, "restart a carried model whose prediction of this frame's pixel mean fails a chi-square "
+        "test against the new samples: sum over RGB of (mean - prediction)^2 / (calibrated variance of the "
+        "mean + the prediction's own error) above this value (16.27: p = 0.001 with 3 degrees of freedom); "
+        "0 = off", 0.0, 1000.0, label="Sample Gate")
+    safe_choice: bool = param(
+        True, "output the frame's own static estimate wherever the temporal estimate's error "
+        "(including this frame's residual bias) is not below it, so no pixel is expected to get worse", label="Never Worse")
+    bias_radius: int = param(
+        1, "half width of the window over which this frame's excess prediction residuals are averaged "
+        "into the bias of the safe choice (1: 3x3); 0 = the pixel's own residual only", 0, 8, label="Bias Window")
     spatial: bool = param(
         True, "filter each frame with static LP first and feed its output to Eq. 6 (paper); off "
         "feeds the raw pixel means (faster, noisier)", label="Spatial Filter First")
@@ -251,7 +288,10 @@ class FrameInputs(NamedTuple):
     finite and the pixel sampled; position : (..., 3) W(t) (0 where not
     ``pos_ok``); pos_ok : bool, W finite; depth : (...) finite surface depth
     (NaN elsewhere) or None without the depth pass; background : bool, no
-    surface hit (and W known); top : float, the frame's largest finite error.
+    surface hit (and W known); top : float, the frame's largest finite error;
+    mean : (..., 3) the pixel's sample mean and mean_var : (..., 3) its calibrated
+    variance (``Buffers.calibrated_variance``; +inf where unknown), for the
+    sample gate; None (no gate) when not given.
     """
 
     y: np.ndarray
@@ -262,19 +302,22 @@ class FrameInputs(NamedTuple):
     depth: np.ndarray | None
     background: np.ndarray
     top: float
+    mean: np.ndarray | None = None
+    mean_var: np.ndarray | None = None
 
     def flat(self) -> "FrameInputs":
         """The same arrays as (H*W, ...) views."""
+        opt = lambda a, *shape: None if a is None else a.reshape(-1, *shape)
         return FrameInputs(self.y.reshape(-1, 3), self.s2.reshape(-1), self.y_ok.reshape(-1),
-                           self.position.reshape(-1, 3), self.pos_ok.reshape(-1),
-                           self.depth.reshape(-1) if self.depth is not None else None,
-                           self.background.reshape(-1), self.top)
+                           self.position.reshape(-1, 3), self.pos_ok.reshape(-1), opt(self.depth),
+                           self.background.reshape(-1), self.top, opt(self.mean, 3), opt(self.mean_var, 3))
 
     def rows(self, idx) -> "FrameInputs":
         """Rows ``idx`` of the flattened inputs (one chunk)."""
+        opt = lambda a: None if a is None else a[idx]
         return FrameInputs(self.y[idx], self.s2[idx], self.y_ok[idx], self.position[idx],
-                           self.pos_ok[idx], self.depth[idx] if self.depth is not None else None,
-                           self.background[idx], self.top)
+                           self.pos_ok[idx], opt(self.depth), self.background[idx], self.top,
+                           opt(self.mean), opt(self.mean_var))
 
 
 def _frame_inputs(buf: Buffers, params: Params, static, lp_params) -> FrameInputs:
@@ -307,8 +350,15 @@ def _frame_inputs(buf: Buffers, params: Params, static, lp_params) -> FrameInput
     bg = is_background(pos, depth)
     if depth is not None:
         depth = np.where(np.isfinite(depth) & (depth > 0) & (depth < FAR_DEPTH), depth, np.nan)
+    mean = mean_var = None
+    if params.sample_gate > 0 or params.safe_choice:
+        mean = np.asarray(buf.color.mean, np.float64)
+        mean_var = np.asarray(buf.calibrated_variance(), np.float64)
+        fin = np.isfinite(mean)
+        mean = np.where(fin, mean, 0.0)
+        mean_var = np.where(fin & ~np.isnan(mean_var), mean_var, np.inf)   # +inf: no test there
     return FrameInputs(np.where(y_ok[..., None], y, 0.0), s2, y_ok, np.where(pos_ok[..., None], pos, 0.0),
-                       pos_ok, depth, bg & pos_ok, top)
+                       pos_ok, depth, bg & pos_ok, top, mean, mean_var)
 
 
 # ----------------------------------------------------------------------------- carrying models
@@ -465,6 +515,33 @@ def residual_reset(z, P_o, pred, e, s2, v, has_y, lam: float, reset_sigma: float
         return has_y & ~((e * e).mean(axis=1) <= lim)
 
 
+def sample_reset(z, P_o, pred, mean, mean_var, s2, v, has_y, lam: float, threshold: float):
+    """Carried models to drop (m,) bool: the prediction fails a chi-square test against the frame's samples.
+
+    ``q = sum_c (mean_c - pred_c)^2 / (V_c + (sigma^2 + (REL_FLOOR pred_c)^2) (1 + z^T P z / lambda) + v)
+    > threshold`` with ``mean`` the pixel's sample mean and ``V`` its calibrated
+    variance (``Buffers.calibrated_variance``): ``mean - pred`` is the samples'
+    noise (``V``) plus the prediction's error, whose variance is the model's
+    noise ``v`` plus the static estimate's error ``sigma^2`` that the model
+    follows, widened by ``1 + z^T P z / lambda`` as in :func:`residual_reset` (a
+    young model's slope is still unknown), so a valid model gives ``q`` about
+    chi-square with 3 degrees of freedom; 16.27 is its 0.999 quantile.  The
+    samples are independent of the model, so a model that lags a moving
+    highlight fails even where y(t) (spatially filtered, perhaps blurred the
+    same way) agrees with it.  Channels with unknown variance (+inf) add 0;
+    a non-finite ``q`` is a miss; never without a y, a mean, or with
+    ``threshold`` 0.  pred, mean, mean_var (m, 3), s2, v (m,).
+    """
+    if mean is None or mean_var is None or not threshold > 0:
+        return np.zeros(pred.shape[0], bool)
+    s = np.einsum("ni,nij,nj->n", z, P_o, z)
+    d = mean - pred
+    with np.errstate(invalid="ignore", over="ignore", divide="ignore"):
+        model = (s2[:, None] + (REL_FLOOR * pred) ** 2 + 1e-300) * (1.0 + s / lam)[:, None] + v[:, None]
+        q = (d * d / (mean_var + model)).sum(axis=1)
+    return has_y & ~(q <= threshold)
+
+
 def bias_estimate(bias_num, bias_den, e, s2, v, has_y, lam: float):
     """Squared bias of the carried prediction (module docstring, error estimate).
 
@@ -480,7 +557,13 @@ def bias_estimate(bias_num, bias_den, e, s2, v, has_y, lam: float):
 class CarriedModels(NamedTuple):
     """Models of the carried pixels after frame t (n rows): beta (n, 3, 2), P, C
     (n, 2, 2), age (n,) int64, bias_num, bias_den (n,), image (n, 3) =
-    beta(t)^T z(t), error (n,), drop (n,) bool (reset by the residual gate)."""
+    beta(t)^T z(t), error (n,), drop (n,) bool (reset by a gate), drop_samples
+    (n,) bool (of those, the ones only the sample gate reset); for the safe
+    choice (:func:`safe_choice`): excess (n,) ``mean_c e_c^2 - sigma^2 - v`` of
+    the a-priori residual e = y - pred and excess_s (n,) ``mean_c (d_c^2 - V_c) - v``
+    of d = sample mean - pred (NaN without y, or without the samples' mean and
+    variance), noise (n,) ``sigma^2 + v`` and noise_s (n,) ``mean_c V_c + v``, their
+    noise levels, gain (n,) ``g = z^T G``, var_out (n,) ``z^T C(t) z``, bias2 (n,) ``b^2``."""
 
     beta: np.ndarray
     P: np.ndarray
@@ -491,22 +574,34 @@ class CarriedModels(NamedTuple):
     image: np.ndarray
     error: np.ndarray
     drop: np.ndarray
+    drop_samples: np.ndarray
+    excess: np.ndarray
+    excess_s: np.ndarray
+    noise: np.ndarray
+    noise_s: np.ndarray
+    gain: np.ndarray
+    var_out: np.ndarray
+    bias2: np.ndarray
 
 
 def carry_models(prev: PreviousModels, j, y, s2, has_y, lam: float, reset_sigma: float,
-                 top: float) -> CarriedModels:
+                 top: float, mean=None, mean_var=None, sample_gate: float = 0.0) -> CarriedModels:
     """Eq. 6 for the models of frame t-1 rows ``j`` (n,) carried to pixels with y (n, 3), s2, has_y (n,).
 
     z = (1, age + dt) in the model's own time.  Where there is no y the model
     is kept unchanged and outputs its prediction, error ``v + b^2 + top``;
     elsewhere the error is ``z^T C(t) z + (1 - g)^2 b^2`` (module docstring).
+    Models failing :func:`residual_reset` or :func:`sample_reset` (with the
+    pixels' sample ``mean`` and calibrated ``mean_var`` (n, 3)) are marked ``drop``.
     """
     t_loc = (prev.age[j] + prev.dt).astype(np.float64)
     z = np.stack([np.ones(j.size), t_loc], 1)
     b_o, P_o, C_o = prev.beta[j], prev.P[j], prev.C[j]
     b1, P1, C1, pred, g, v = rls_update(b_o, P_o, C_o, z, y, s2, lam)
     e = y - pred
-    drop = residual_reset(z, P_o, pred, e, s2, v, has_y, lam, reset_sigma)
+    drop_resid = residual_reset(z, P_o, pred, e, s2, v, has_y, lam, reset_sigma)
+    drop_samples = sample_reset(z, P_o, pred, mean, mean_var, s2, v, has_y, lam, sample_gate) & ~drop_resid
+    drop = drop_resid | drop_samples
     # pixels without a usable y: keep the carried model, output its prediction
     b1 = np.where(has_y[:, None, None], b1, b_o)
     P1 = np.where(has_y[:, None, None], P1, P_o)
@@ -515,12 +610,26 @@ def carry_models(prev: PreviousModels, j, y, s2, has_y, lam: float, reset_sigma:
     var_out = np.einsum("ni,nij,nj->n", z, C1, z)
     bn, bd, bias2 = bias_estimate(prev.bias_num[j], prev.bias_den[j], e, s2, v, has_y, lam)
     e_out = np.where(has_y, var_out + (1.0 - g) ** 2 * bias2, v + bias2 + top)
-    return CarriedModels(b1, P1, C1, t_loc.astype(np.int64), bn, bd, y_hat, e_out, drop)
+    with np.errstate(invalid="ignore", over="ignore"):
+        excess = np.where(has_y, (e * e).mean(axis=1) - s2 - v, np.nan)
+        noise = s2 + v
+        if mean is not None and mean_var is not None:
+            ds = mean - pred
+            noise_s = mean_var.mean(axis=1) + v
+            xs = (ds * ds).mean(axis=1) - noise_s
+            excess_s = np.where(has_y & np.isfinite(xs), xs, np.nan)
+        else:
+            excess_s = np.full(excess.shape, np.nan)
+            noise_s = np.full(excess.shape, np.nan)
+    return CarriedModels(b1, P1, C1, t_loc.astype(np.int64), bn, bd, y_hat, e_out, drop, drop_samples,
+                         excess, excess_s, noise, noise_s, g, var_out, bias2)
 
 
 # ----------------------------------------------------------------------------- output assembly
 class _Rows(NamedTuple):
-    """One chunk's share (m rows) of the new state and of the output."""
+    """One chunk's share (m rows) of the new state and of the output, and the
+    terms of the safe choice: ``excess`` and ``excess_s`` of every pixel that
+    had a candidate model and a y (NaN elsewhere), :data:`_CHOICE` of the carried ones."""
 
     beta: np.ndarray
     P: np.ndarray
@@ -531,6 +640,17 @@ class _Rows(NamedTuple):
     image: np.ndarray
     error: np.ndarray
     source: np.ndarray
+    excess: np.ndarray
+    excess_s: np.ndarray
+    noise: np.ndarray
+    noise_s: np.ndarray
+    gain: np.ndarray
+    var_out: np.ndarray
+    bias2: np.ndarray
+
+
+#: fields of the carried (kept) models that the safe choice reads
+_CHOICE = ("gain", "var_out", "bias2")
 
 
 def _step_chunk(idx, inp: FrameInputs, prev: PreviousModels | None, cen, w: int, same_shape: bool,
@@ -545,15 +665,23 @@ def _step_chunk(idx, inp: FrameInputs, prev: PreviousModels | None, cen, w: int,
         counts["reset_position"] += int(np.count_nonzero(gated))
     carried = best >= 0
     rows = _Rows(np.zeros((m, 3, 2)), np.zeros((m, 2, 2)), np.zeros((m, 2, 2)), np.zeros(m, np.int64),
-                 np.zeros(m), np.zeros(m), np.zeros((m, 3)), np.zeros(m), None)
+                 np.zeros(m), np.zeros(m), np.zeros((m, 3)), np.zeros(m), None,
+                 np.full(m, np.nan), np.full(m, np.nan), np.full(m, np.nan), np.full(m, np.nan),
+                 np.ones(m), np.zeros(m), np.zeros(m))
     ci = np.flatnonzero(carried)
     if ci.size:
+        opt = lambda a: None if a is None else a[ci]
         cm = carry_models(prev, best[ci], inp.y[ci], inp.s2[ci], inp.y_ok[ci], lam, params.reset_sigma,
-                          inp.top)
-        counts["reset_residual"] += int(np.count_nonzero(cm.drop))
+                          inp.top, opt(inp.mean), opt(inp.mean_var), params.sample_gate)
+        n_samples = int(np.count_nonzero(cm.drop_samples))
+        counts["reset_samples"] += n_samples
+        counts["reset_residual"] += int(np.count_nonzero(cm.drop)) - n_samples
+        for name in ("excess_s", "noise", "noise_s"):
+            getattr(rows, name)[ci] = getattr(cm, name)
+        rows.excess[ci] = cm.excess               # reset ones too: they warn their neighbours
         keep = ~cm.drop
         sel = ci[keep]
-        for name in ("bias_num", "bias_den", "beta", "P", "C", "age", "image", "error"):
+        for name in ("bias_num", "bias_den", "beta", "P", "C", "age", "image", "error") + _CHOICE:
             getattr(rows, name)[sel] = getattr(cm, name)[keep]
         carried[ci[cm.drop]] = False
         best[ci[cm.drop]] = -1
@@ -573,14 +701,79 @@ def _step_chunk(idx, inp: FrameInputs, prev: PreviousModels | None, cen, w: int,
     return rows._replace(source=np.where(carried, best, -1))
 
 
-def _store(rows: _Rows, idx, state: TemporalState, image, error, source):
-    """Write one chunk's rows into the (H, W, ...) state and outputs."""
+def _store(rows: _Rows, idx, state: TemporalState, image, error, source, terms: dict):
+    """Write one chunk's rows into the (H, W, ...) state, outputs and safe-choice ``terms`` (H, W)."""
     for name in ("beta", "P", "C", "age", "bias_num", "bias_den"):
         a = getattr(state, name)
         a.reshape((-1,) + a.shape[2:])[idx] = getattr(rows, name)
     image.reshape(-1, 3)[idx] = rows.image
     error.reshape(-1)[idx] = rows.error
     source.reshape(-1)[idx] = rows.source
+    for name, a in terms.items():
+        a.reshape(-1)[idx] = getattr(rows, name)
+
+
+def box_mean(x, radius: int, with_count: bool = False):
+    """Mean of the finite entries of ``x`` (H, W) over the (2r+1)^2 window of each
+    pixel (clipped at the border); NaN where the window has none.  With
+    ``with_count``: (mean, number of finite entries)."""
+    h, w = x.shape
+    ok = np.isfinite(x)
+    r = max(int(radius), 0)
+    total = np.zeros((h + 2 * r, w + 2 * r))
+    count = np.zeros((h + 2 * r, w + 2 * r))
+    xv = np.where(ok, x, 0.0)
+    for dy in range(2 * r + 1):                      # scatter each pixel into its window
+        for dx in range(2 * r + 1):
+            total[dy:dy + h, dx:dx + w] += xv
+            count[dy:dy + h, dx:dx + w] += ok
+    total, count = total[r:r + h, r:r + w], count[r:r + h, r:r + w]
+    with np.errstate(invalid="ignore", divide="ignore"):
+        mean = np.where(count > 0, total / np.maximum(count, 1.0), np.nan)
+    return (mean, count) if with_count else mean
+
+
+def safe_choice(image, error, y, s2, carried, terms: dict, radius: int):
+    """The output where the temporal estimate is not expected to beat the frame's own.
+
+    For a carried pixel (with a y) the temporal output is ``(1 - g) pred + g
+    y`` with error ``z^T C(t) z + (1 - g)^2 b^2`` (module docstring).  Here the
+    squared bias is ``max(b^2, B_y, B_s)`` with this frame's excess residuals
+    averaged over the (2r+1)^2 window: ``B_y`` of ``mean_c e_c^2 - sigma^2 -
+    v`` (e = y - pred) and ``B_s`` of ``mean_c (d_c^2 - V_c) - v`` (d = sample
+    mean - pred, V its calibrated variance: evidence that does not rest on the
+    static estimate's own error).  A moving highlight or a misplaced model shows
+    up in this frame's residuals before the lambda-weighted ``b^2`` catches up;
+    the window averages their chi-square noise and includes the models the
+    gates just reset; each pooled mean counts beyond :data:`BIAS_Z` standard
+    errors of its noise only (``noise`` = ``sigma^2 + v``, ``noise_s`` =
+    ``mean_c V_c + v``, window means).  The error is compared with the window mean of
+    ``sigma^2``: a single pixel's ``sigma^2`` is noisy, and comparing with it
+    would send exactly the pixels whose estimate is low by chance to the static
+    result (docs/notes/temporal.md).
+    Where the temporal error is not below it the pixel takes ``y`` and
+    ``sigma^2`` (the model is kept: this changes the output only).
+    carried (H, W) bool: carried models with a y; terms: (H, W) arrays
+    ``excess``, ``excess_s``, ``noise``, ``noise_s`` (NaN where none), ``gain``,
+    ``var_out``, ``bias2``.
+    Returns image, error, fallback (H, W) bool.
+    """
+    b2 = terms["bias2"]
+    for name, nname in (("excess", "noise"), ("excess_s", "noise_s")):
+        pooled, cnt = box_mean(terms[name], radius, True)
+        scale = box_mean(np.where(np.isfinite(terms[name]), terms[nname], np.nan), radius)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            b_now = pooled - BIAS_Z * np.sqrt(2.0 / (3.0 * np.maximum(cnt, 1.0))) * scale
+        b2 = np.maximum(b2, np.where(np.isfinite(b_now), np.maximum(b_now, 0.0), 0.0))
+    s2_pool = box_mean(np.where(carried, s2, np.nan), radius)
+    s2_ref = np.where(np.isfinite(s2_pool), s2_pool, s2)
+    with np.errstate(invalid="ignore", over="ignore"):
+        err_t = terms["var_out"] + (1.0 - terms["gain"]) ** 2 * b2
+        use_t = err_t < s2_ref
+    fallback = carried & ~use_t
+    image = np.where(fallback[..., None], y, image)
+    error = np.where(carried, np.where(use_t, err_t, s2), error)
+    return image, error, fallback
 
 
 def _finish(image, error, state: TemporalState):
@@ -630,9 +823,11 @@ def step(state: TemporalState | None, buf: Buffers, params: Params | dict | None
     Returns
     -------
     TemporalResult
-        ``image`` (H, W, 3) = beta(t)^T z(t), ``error`` (H, W) (module
-        docstring), the new ``state``, ``source`` and ``info`` (``carried``,
-        ``new``, ``reset_position``, ``reset_residual`` fractions, ``frame``,
+        ``image`` (H, W, 3) = beta(t)^T z(t) (y(t) where :func:`safe_choice`
+        falls back), ``error`` (H, W) (module docstring), the new ``state``,
+        ``source`` and ``info`` (``carried``, ``new``, ``reset_position``,
+        ``reset_residual``, ``reset_samples`` (reset by the sample gate only),
+        ``fallback`` (carried but output y) fractions, ``frame``,
         ``resized``).  All finite.
     """
     params = _params(params)
@@ -656,12 +851,17 @@ def step(state: TemporalState | None, buf: Buffers, params: Params | dict | None
     same_shape = prev is not None and prev.shape == (h, w)
     flat = inp.flat()
     counts = dict.fromkeys(COUNTS, 0)
+    terms = {name: np.zeros((h, w)) for name in ("excess", "excess_s", "noise", "noise_s") + _CHOICE}
     chunk = max(int(params.chunk), 1)
     for s0 in range(0, npx, chunk):
         idx = np.arange(s0, min(npx, s0 + chunk))
         rows = _step_chunk(idx, flat.rows(idx), prev, cen, w, same_shape, params,
                            float(params.lam), float(params.delta), counts)
-        _store(rows, idx, new_state, image, error, source)
+        _store(rows, idx, new_state, image, error, source, terms)
+    if params.safe_choice and prev is not None:
+        image, error, fallback = safe_choice(image, error, inp.y, inp.s2, (source >= 0) & inp.y_ok, terms,
+                                             params.bias_radius)
+        counts["fallback"] = int(np.count_nonzero(fallback))
     image, error = _finish(image, error, new_state)
     info.update({k: v / npx for k, v in counts.items()})
     return TemporalResult(image, error, new_state, source, info)

@@ -432,3 +432,34 @@ def test_constant_features():
     assert nan.constant_features() == ("depth",)
     view = buf.without(("albedo",))
     assert set(view.features) == {"normal", "depth"} and view.color is buf.color
+
+
+class _SampleZeroExecutor(FakeExecutor):
+    """Writes the position pass only in the render holding sample 0, as
+    Cycles does (renders with an offset carry no position)."""
+
+    def render(self, task):
+        rgba, feats = super().render(task)
+        if task.offset > 0:
+            feats = {k: v for k, v in feats.items() if k != "position"}
+        return rgba, feats
+
+
+def test_a_pass_written_only_with_sample_zero_keeps_that_value():
+    h, w = 12, 16
+    pos = np.random.default_rng(4).random((h, w, 3)) * 10
+    ex = _SampleZeroExecutor(_smooth(h, w), {"position": pos})
+    run = AdaptiveRun(ex, Options(method="var", spp=10, features=("position",)))
+    for _ in run.steps():
+        pass
+    assert len(ex.tasks) > 4  # subsets and region renders with offsets
+    np.testing.assert_allclose(run.buffers.features["position"].mean, pos, rtol=1e-12)
+
+
+def test_a_pass_missing_from_a_first_render_is_an_error():
+    from core.buffers import Buffers
+    from core.pipeline import merge_render
+    from core.regions import RegionTask
+    buf = Buffers.empty(4, 4, ("depth",))
+    with pytest.raises(KeyError, match="depth"):
+        merge_render(buf, RegionTask(0, 0, 4, 4, 1), np.ones((4, 4, 4)), {})

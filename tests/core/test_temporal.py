@@ -45,7 +45,7 @@ def test_params_metadata():
 def test_rls_equals_closed_form_weighted_least_squares():
     rng = np.random.default_rng(0)
     pos = plane_positions()
-    params = tp.Params(spatial=False, reset_sigma=0.0)
+    params = tp.Params(spatial=False, reset_sigma=0.0, sample_gate=0.0, safe_choice=False)  # the literal paper
     state, ys = None, []
     for f in range(101, 113):                   # frame numbers need not start at 1
         truth = 0.5 + 0.02 * (f - 100) + 0.1 * rng.random((H, W, 3))
@@ -197,7 +197,8 @@ def test_sudden_illumination_change_restarts_models():
     assert (res.state.age[left] == 1).all() and (res.state.age[~left] == 11).all()
     np.testing.assert_array_equal(res.image[left], buf.color.mean[left])
     # the literal paper (no gate) blurs the change in
-    lit = tp.step(state, buf, tp.Params(spatial=False, reset_sigma=0.0), frame=11)
+    lit = tp.step(state, buf, tp.Params(spatial=False, reset_sigma=0.0, sample_gate=0.0, safe_choice=False),
+                  frame=11)
     assert np.abs(lit.image[left] - dark[left]).mean() > 5 * np.abs(res.image[left] - dark[left]).mean()
 
 
@@ -434,3 +435,143 @@ def test_bias_estimate_is_the_weighted_mean_excess():
     n2, d2, _ = tp.bias_estimate(num, den, e, s2, v, np.zeros(n, bool), lam)
     np.testing.assert_array_equal(n2, num)
     np.testing.assert_array_equal(d2, den)
+
+
+# ----------------------------------------------------------------------------- never worse than the frame alone
+def _highlight_truth(pos, f, speed, h):
+    """smooth_truth plus a bright Gaussian highlight (sigma 2 px, peak 3) moving
+    ``speed`` pixels per frame along the middle row: the non-linear change in
+    time that Eq. 6's linear model smears (paper Sec. 6, limitations)."""
+    r, c = np.mgrid[0:pos.shape[0], 0:pos.shape[1]].astype(np.float64)
+    hl = 3.0 * np.exp(-((c - 4.0 - speed * f) ** 2 + (r - h // 2) ** 2) / (2 * 2.0 ** 2))
+    return smooth_truth(pos) + hl[..., None]
+
+
+def _sequence(truths, params, spatial, seed, noise=0.5):
+    """Per-frame relMSE (against the known truth) of the temporal output and of
+    the frame's own static estimate (LP, or the raw mean), and the last result."""
+    from core import lp, metrics
+    rng = np.random.default_rng(seed)
+    state, out_t, out_s = None, [], []
+    for f, truth in enumerate(truths, 1):
+        pos = plane_positions(*truth.shape[:2])
+        buf = frame_buffers(truth, rng, pos, noise=noise)
+        static = lp.reconstruct(buf, {"radius": 2}) if spatial else None
+        res = tp.step(state, buf, tp.Params(spatial=spatial, **params), frame=f, static=static)
+        state = res.state
+        assert np.isfinite(res.image).all() and np.isfinite(res.error).all()
+        out_t.append(metrics.relmse(res.image, truth))
+        out_s.append(metrics.relmse(static.image if spatial else buf.color.mean, truth))
+    return np.array(out_t), np.array(out_s), res
+
+
+LITERAL = dict(reset_sigma=0.0, sample_gate=0.0, safe_choice=False)
+
+
+@pytest.mark.parametrize("spatial,speed", [(True, 1.0), (False, 2.0)])
+def test_moving_highlight_never_worse_than_the_frame_alone(spatial, speed):
+    """A highlight moving 1-2 px per frame over a still plane: with the gates and
+    the safe choice the temporal output's error is <= the static estimate's on
+    every frame (and lower at the end); the literal paper (no gate, no choice)
+    smears the highlight and is worse on most frames."""
+    h, w = 24, 32
+    pos = plane_positions(h, w)
+    truths = [_highlight_truth(pos, f, speed, h) for f in range(1, 11)]
+    err_t, err_s, res = _sequence(truths, {}, spatial, seed=21)
+    assert (err_t <= err_s).all(), (err_t / err_s).round(3)
+    assert err_t[-1] < 0.8 * err_s[-1]
+    assert res.info["fallback"] > 0 or res.info["reset_samples"] + res.info["reset_residual"] > 0
+    lit_t, lit_s, _ = _sequence(truths, LITERAL, spatial, seed=21)
+    np.testing.assert_array_equal(lit_s, err_s)                 # the same frames and samples
+    assert (lit_t > lit_s).sum() >= 5 and lit_t[-1] > 2 * lit_s[-1]
+
+
+def test_still_sequence_strictly_better_after_a_few_frames():
+    """Nothing moves: from the third frame on the temporal output beats the
+    static LP estimate on every frame, by more each frame, and the safe choice
+    keeps most pixels on the temporal output."""
+    pos = plane_positions(24, 24)
+    truths = [smooth_truth(pos)] * 8
+    err_t, err_s, res = _sequence(truths, {}, True, seed=22, noise=0.6)
+    assert err_t[0] == err_s[0]                                  # frame 1: new models output y
+    assert (err_t[2:] < err_s[2:]).all()
+    assert (err_t / err_s)[-1] < 0.7
+    assert res.info["fallback"] < 0.2 and res.info["carried"] == 1.0
+
+
+def test_sample_reset_is_the_chi_square_test_against_the_samples():
+    """Dropped exactly when sum_c (mean_c - pred_c)^2 / (V_c + (sigma^2 +
+    (0.01 pred_c)^2)(1 + z^T P z / lambda) + v) exceeds the threshold; channels
+    with unknown variance add 0; never without a y, a mean, or with threshold 0."""
+    rng = np.random.default_rng(15)
+    n, lam, thr = 10, 0.98, 16.27
+    z = np.stack([np.ones(n), rng.integers(1, 20, n).astype(float)], 1)
+    a = rng.random((n, 2, 2))
+    P = a @ np.swapaxes(a, 1, 2) + 0.1 * np.eye(2)
+    pred, V = rng.random((n, 3)) + 0.1, 0.01 * rng.random((n, 3))
+    s2, v = 0.01 * rng.random(n), 0.01 * rng.random(n)
+    s = np.einsum("ni,nij,nj->n", z, P, z)
+    den = V + (s2[:, None] + (0.01 * pred) ** 2) * (1 + s / lam)[:, None] + v[:, None]
+    unit = rng.normal(size=(n, 3))
+    unit /= np.sqrt((unit ** 2 / den).sum(1, keepdims=True))     # q(pred + unit) = 1
+    has = np.ones(n, bool)
+    for scale, dropped in ((0.999, False), (1.001, True)):
+        mean = pred + np.sqrt(scale * thr) * unit
+        np.testing.assert_array_equal(tp.sample_reset(z, P, pred, mean, V, s2, v, has, lam, thr), dropped)
+        assert not tp.sample_reset(z, P, pred, mean, V, s2, v, ~has, lam, thr).any()
+        assert not tp.sample_reset(z, P, pred, mean, V, s2, v, has, lam, 0.0).any()
+        assert not tp.sample_reset(z, P, pred, None, None, s2, v, has, lam, thr).any()
+    mean = pred + 10 * np.sqrt(thr) * unit
+    assert not tp.sample_reset(z, P, pred, mean, np.full((n, 3), np.inf), s2, v, has, lam, thr).any()
+    pred_bad = pred.copy()
+    pred_bad[0, 1] = np.nan                                       # a NaN prediction is a miss
+    assert tp.sample_reset(z, P, pred_bad, pred, V, s2, v, has, lam, thr)[0]
+
+
+def test_box_mean_equals_a_direct_window_average():
+    rng = np.random.default_rng(16)
+    x = rng.normal(size=(7, 9))
+    x[rng.random((7, 9)) < 0.3] = np.nan
+    x[0, 0] = np.inf
+    for r in (0, 1, 2):
+        got, cnt = tp.box_mean(x, r, True)
+        for i in range(7):
+            for j in range(9):
+                win = x[max(0, i - r):i + r + 1, max(0, j - r):j + r + 1]
+                fin = win[np.isfinite(win)]
+                assert cnt[i, j] == fin.size
+                if fin.size:
+                    assert got[i, j] == pytest.approx(fin.mean(), rel=1e-12)
+                else:
+                    assert np.isnan(got[i, j])
+
+
+def test_safe_choice_takes_the_static_estimate_where_the_temporal_error_is_not_lower():
+    """err_T = z^T C z + (1 - g)^2 max(b^2, pooled excess beyond BIAS_Z standard
+    errors); a carried pixel keeps the temporal output iff err_T < the window mean
+    of sigma^2, else takes y with sigma^2; pixels not carried are untouched."""
+    h, w = 5, 6
+    rng = np.random.default_rng(17)
+    image, y = rng.random((h, w, 3)), rng.random((h, w, 3))
+    error, s2 = rng.random((h, w)), np.full((h, w), 0.01)
+    carried = np.ones((h, w), bool)
+    carried[0, :] = False
+    terms = {"excess": np.zeros((h, w)), "excess_s": np.full((h, w), np.nan), "noise": np.full((h, w), 0.01),
+             "noise_s": np.full((h, w), np.nan), "gain": np.full((h, w), 0.5),
+             "var_out": np.full((h, w), 0.004), "bias2": np.zeros((h, w))}
+    terms["excess"][0, :] = np.nan
+    terms["excess"][3, 4] = 1.0                                   # a big miss: it and its 3x3 window
+    terms["bias2"][1, 0] = 0.03                                   # a known bias: 0.004 + 0.25 * 0.03 > 0.01
+    img, err, fb = tp.safe_choice(image, error, y, s2, carried, terms, 1)
+    expect = np.zeros((h, w), bool)
+    expect[2:5, 3:6] = True
+    expect[1, 0] = True
+    np.testing.assert_array_equal(fb, expect)
+    np.testing.assert_array_equal(img[fb], y[fb])
+    np.testing.assert_array_equal(img[~fb], image[~fb])
+    np.testing.assert_array_equal(err[~carried], error[~carried])
+    np.testing.assert_array_equal(err[fb], s2[fb])
+    keep = carried & ~fb
+    pooled, cnt = tp.box_mean(terms["excess"], 1, True)
+    b_now = np.maximum(pooled - tp.BIAS_Z * np.sqrt(2 / (3 * cnt)) * 0.01, 0)
+    np.testing.assert_allclose(err[keep], (0.004 + 0.25 * np.maximum(b_now, terms["bias2"]))[keep], rtol=1e-12)
