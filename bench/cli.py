@@ -27,7 +27,10 @@ DEFAULT_METHODS = ("uniform", "var", "awr", "lp", "rhf")
 DEFAULT_OUT = os.path.join(refs.ROOT, "bench_out")
 
 QUICK = {"scenes": "cornell", "budgets": "8", "resolution_percentage": 25, "uniform_spp": "4,8,32",
-         "scaling_percentages": "25,50", "max_samples_factor": 8}
+         "scaling_percentages": "25,50", "max_samples_factor": 8, "reference_floor": "none"}
+#: the references' noise-floor target (relMSE of a perfect image against them);
+#: results.md checks it against 1/10 of the smallest error scored (docs/notes/references.md)
+DEFAULT_REFERENCE_FLOOR = 1.5e-4
 DEFAULT_SCALING = "200,400,800"  # of a 128-pixel scene: 256^2, 512^2, 1024^2 = 0.066, 0.26, 1.05 MP
 
 
@@ -49,7 +52,14 @@ def add_arguments(p) -> None:
                    help="render the scenes at this %% (default 100; --quick: 25)")
     p.add_argument("--uniform-spp", help="spp of the plain uniform renders of the t_uniform(e) "
                    "curve (default: the budgets plus 2x and 4x the largest)")
-    p.add_argument("--reference-spp", type=int, default=refs.DEFAULT_SPP)
+    p.add_argument("--reference-spp", type=int, default=refs.DEFAULT_SPP, help="spp of each reference "
+                   f"(with --reference-floor: the spp it starts from; default {refs.DEFAULT_SPP})")
+    p.add_argument("--reference-floor", default=None, help="render each reference, doubling its spp, "
+                   "until its noise floor (two independent halves) is below this relMSE "
+                   f"(default {DEFAULT_REFERENCE_FLOOR:g}; --quick: none; 'none': exactly "
+                   "--reference-spp)")
+    p.add_argument("--reference-max-spp", type=int, default=refs.DEFAULT_MAX_SPP,
+                   help=f"cap of --reference-floor (default {refs.DEFAULT_MAX_SPP})")
     p.add_argument("--reference-dir", default=None, help="reference cache (default references/)")
     p.add_argument("--no-render-references", action="store_true",
                    help="fail instead of rendering a missing reference")
@@ -90,6 +100,22 @@ def _ints(text, what) -> list:
     return sorted(set(vals))
 
 
+def _reference_floor(text) -> float | None:
+    """``--reference-floor``: None (default) -> ``DEFAULT_REFERENCE_FLOOR``;
+    ``"none"`` -> None (fixed spp); else a relMSE > 0."""
+    if text is None:
+        return DEFAULT_REFERENCE_FLOOR
+    if str(text).strip().lower() == "none":
+        return None
+    try:
+        v = float(text)
+    except ValueError:
+        raise BenchError(f"--reference-floor: cannot read {text!r} (a relMSE such as 1.5e-4, or none)") from None
+    if not v > 0 or not v < float("inf"):
+        raise BenchError(f"--reference-floor must be a relMSE > 0, got {text!r}")
+    return v
+
+
 def resolve_config(args) -> dict:
     """Validated settings of one session (presets applied, CLI values win)."""
     q = QUICK if args.quick else {}
@@ -114,6 +140,10 @@ def resolve_config(args) -> dict:
     if args.reference_spp < 1024:
         print(f"[bench] note: references at {args.reference_spp} spp (< 1024): relMSE below the "
               "reference's own noise floor is not measurable", file=sys.stderr)
+    floor = _reference_floor(getattr(args, "reference_floor", None) or q.get("reference_floor"))
+    max_ref = int(getattr(args, "reference_max_spp", refs.DEFAULT_MAX_SPP))
+    if floor is not None and max_ref < args.reference_spp:
+        raise BenchError(f"--reference-max-spp {max_ref} is below --reference-spp {args.reference_spp}")
     scal = args.scaling_percentages or q.get("scaling_percentages") or DEFAULT_SCALING
     scaling = [] if scal == "none" else _ints(scal, "scaling-percentages")
     oracle_budgets = budgets if not args.oracle_budgets else _ints(args.oracle_budgets, "oracle-budgets")
@@ -128,6 +158,7 @@ def resolve_config(args) -> dict:
     return {"quick": bool(args.quick), "scenes": scenes, "methods": names, "budgets": budgets,
             "resolution_percentage": int(pct), "uniform_spp": uniform,
             "reference_spp": int(args.reference_spp), "reference_dir": args.reference_dir,
+            "reference_floor": floor, "reference_max_spp": max_ref,
             "render_references": not args.no_render_references, "oracle": not args.no_oracle,
             "uniform_sampling": not args.no_uniform_sampling,
             "oracle_budgets": [b for b in oracle_budgets], "peers": not args.no_peers,
@@ -146,8 +177,8 @@ def main(args) -> int:
         cfg = resolve_config(args)
     except BenchError as exc:
         raise ValueError(str(exc)) from None
-    if cfg["seed"] == refs.REFERENCE_SEED:
-        raise ValueError(f"--seed {cfg['seed']} is the references' seed; the runs need another")
+    if cfg["seed"] in refs.half_seeds(refs.REFERENCE_SEED):
+        raise ValueError(f"--seed {cfg['seed']} is a seed of the references' halves; the runs need another")
     os.makedirs(cfg["out"], exist_ok=True)
     session = Session(cfg, argv=sys.argv[1:])
     results = session.run()
@@ -172,6 +203,11 @@ def add_reference_arguments(p) -> None:
                    help="cache folder (default: references/ in the repo)")
     p.add_argument("--seed", type=int, default=refs.REFERENCE_SEED,
                    help="Cycles seed of the references; must differ from the runs' seed (0)")
+    p.add_argument("--floor", type=float, default=None, help="render until the noise floor "
+                   "(relMSE of a perfect image, from two independent halves) is below this: from "
+                   "--spp, doubling, up to --max-spp (default: exactly --spp samples)")
+    p.add_argument("--max-spp", type=int, default=refs.DEFAULT_MAX_SPP,
+                   help=f"cap of --floor (default {refs.DEFAULT_MAX_SPP})")
     p.add_argument("--force", action="store_true", help="re-render even when a matching one is cached")
     p.add_argument("--json", action="store_true", help="print one JSON object as the last line")
 
@@ -184,8 +220,13 @@ def references_main(args) -> int:
         raise ValueError("--spp must be >= 1")
     if args.spp < 1024:
         print(f"[references] note: {args.spp} spp is below the benchmark's 1024", file=sys.stderr)
-    if args.seed == 0:
-        raise ValueError("--seed 0 is the runs' seed; a reference must use another seed")
+    if 0 in refs.half_seeds(args.seed):
+        raise ValueError(f"--seed {args.seed}: its halves' seeds {refs.half_seeds(args.seed)} include "
+                         "the runs' seed 0; a reference must use another seed")
+    if args.floor is not None and not args.floor > 0:
+        raise ValueError("--floor must be > 0")
+    if args.floor is not None and args.max_spp < args.spp:
+        raise ValueError(f"--max-spp {args.max_spp} is below --spp {args.spp}")
     names = refs.scene_names(args.scenes)
     done = []
     for name in names:
@@ -196,23 +237,36 @@ def references_main(args) -> int:
         if len(frames) > 1 and scene.frame_end <= scene.frame_start:
             frames = [scene.frame_current]  # a still: one frame
         for fr in frames:
-            want = refs.wanted_record(path, fr, args.resolution_percentage, args.spp, args.seed)
-            cached_path = refs.reference_path(path, fr, args.resolution_percentage, args.spp, args.dir)
-            cached = not args.force and not refs.mismatch(refs.read_sidecar(cached_path), want)
+            if args.floor is None:
+                want = refs.wanted_record(path, fr, args.resolution_percentage, args.spp, args.seed)
+                cached_path = refs.reference_path(path, fr, args.resolution_percentage, args.spp, args.dir)
+                cached = not args.force and not refs.mismatch(refs.read_sidecar(cached_path), want)
+            else:
+                cached = not args.force and refs.find_floor_reference(
+                    path, fr, args.resolution_percentage, args.seed, args.floor, args.max_spp,
+                    args.dir) is not None
             ref = refs.ensure_reference(path, fr, args.resolution_percentage, args.spp, args.seed,
                                         args.dir, force=args.force, other_version="render",
-                                        log=lambda m: print(m, flush=True))
+                                        log=lambda m: print(m, flush=True), floor=args.floor,
+                                        max_spp=args.max_spp)
             rec = refs.read_sidecar(ref) or {}
             print(f"[references] {refs.scene_label(path)} frame {fr}: {ref} "
                   f"({'cached' if cached else 'rendered'}, {rec.get('width')}x{rec.get('height')}, "
-                  f"{rec.get('spp')} spp, noise floor relMSE {rec.get('noise_relmse', float('nan')):.2e})",
-                  flush=True)
+                  f"{rec.get('spp')} spp, noise floor relMSE {_fmt(rec.get('noise_relmse_halves'))} "
+                  f"(two halves), {_fmt(rec.get('noise_relmse'))} (variance of the mean), "
+                  f"{_fmt(rec.get('render_seconds'), '.1f')} s)", flush=True)
             done.append({"scene": refs.scene_label(path), "frame": fr, "path": ref, "cached": cached,
                          **{k: rec.get(k) for k in ("spp", "seed", "width", "height", "blender",
-                                                   "render_seconds", "noise_relmse")}})
+                                                   "render_seconds", "noise_relmse",
+                                                   "noise_relmse_halves", "floor_target")}})
     if args.json:
         print(json.dumps({"references": done}))
     return 0
+
+
+def _fmt(value, spec: str = ".2e") -> str:
+    """A sidecar figure for the log; "n/a" when absent (an old sidecar)."""
+    return format(value, spec) if isinstance(value, (int, float)) else "n/a"
 
 
 class Command(NamedTuple):

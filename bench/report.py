@@ -54,6 +54,9 @@ def write_outputs(res: dict, out: str) -> dict:
             paths["sheets"].append(p)
     except ImportError as exc:
         res["errors"].append({"error": f"no pictures: {err_text(exc)}"})
+    for d in res["scenes"].values():
+        if isinstance(d, dict) and d.get("status") == "ok":
+            d["reference_check"] = reference_check(d)
     # the JSON keeps every figure, not the pixel arrays
     clean = json.loads(json.dumps(res, default=_json_default))
     for s, d in clean["scenes"].items():
@@ -103,9 +106,11 @@ def plot_scene(name, d, path):
         marker = "s" if n in ("oidn", "cycles_adaptive", "cycles_adaptive+oidn") else "o"
         ax.plot([p[0] for p in pts], [p[1] for p in pts], style, marker=marker, ms=4,
                 color=STYLE.get(base, None), alpha=0.6 if n.startswith("oracle-") else 1.0, label=n)
-    floor = d["reference"].get("noise_relmse")
+    rf = reference_record(d)
+    floor = rf.get("noise_relmse_halves") or rf.get("noise_relmse")
     if floor:
-        ax.axhline(floor, color="grey", ls=":", lw=1, label="reference noise floor")
+        ax.axhline(floor, color="grey", ls=":", lw=1, label="reference noise floor" + (
+            "" if rf.get("noise_relmse_halves") else " (variance of the mean, old reference)"))
     ax.set_xscale("log")
     ax.set_yscale("log")
     ax.set_xlabel("seconds (wall, whole run)")
@@ -229,15 +234,20 @@ def markdown(res: dict) -> str:
             L.append(f"  - {dline}")
     L.append("")
     L += _why_section(res)
+    L += references_section(res)
 
     for s, d in res["scenes"].items():
         L += [f"## {s}", ""]
         if d.get("status") != "ok":
             L += [f"Failed: {d.get('error')}", ""]
             continue
-        rf = d["reference"]
+        rf = reference_record(d)
+        chk = d.get("reference_check") or reference_check(d)
+        if chk["below"] is not True:
+            L += [f"**Warning: {chk['verdict']}**", ""]
         L += [f"{d['width']}x{d['height']}, frame {d['frame']}; reference {rf.get('spp')} spp seed "
-              f"{rf.get('seed')} (noise floor relMSE {_fmt(rf.get('noise_relmse'), '.2e')}); warm-up "
+              f"{rf.get('seed')} (noise floor relMSE {_fmt(rf.get('noise_relmse_halves'), '.2e')} from two "
+              f"independent halves, {_fmt(rf.get('noise_relmse'), '.2e')} from the variance of the mean); warm-up "
               f"render {d['warmup_seconds']:.2f} s (not counted); scene measured in "
               f"{d.get('scene_seconds', 0):.0f} s (+ {d.get('reference_seconds_this_session', 0):.0f} s "
               f"for the reference); plain renders use the "
@@ -300,6 +310,86 @@ def markdown(res: dict) -> str:
     if res.get("errors"):
         L += ["## Errors", ""] + [f"- {e}" for e in res["errors"]] + [""]
     return "\n".join(L) + "\n"
+
+
+#: a reference judges an error when its noise floor is below this fraction of it
+FLOOR_FRACTION = 0.1
+
+
+def reference_record(d) -> dict:
+    """A scene's reference figures (``d["reference"]``), completed from its
+    sidecar (``path``) with the keys the session did not copy (the halves floor)."""
+    rf = dict(d.get("reference") or {})
+    if rf.get("noise_relmse_halves") is None and rf.get("path"):
+        from . import references as refs
+        side = refs.read_sidecar(rf["path"]) or {}
+        for k in ("noise_relmse_halves", "floor_target", "half_spp", "spp", "noise_relmse", "render_seconds"):
+            if rf.get(k) is None and side.get(k) is not None:
+                rf[k] = side[k]
+    return rf
+
+
+def reference_check(d) -> dict:
+    """Is the scene's reference converged below what it judges?  Its halves
+    floor against ``FLOOR_FRACTION`` x the smallest relMSE scored on the scene
+    (every run that finished and the plain uniform curve).  ``below``: True /
+    False, None when not judged (no halves floor: a reference from before the
+    two-halves sidecar; or no error scored); ``verdict``: one line."""
+    rf = reference_record(d)
+    errs = [r.get("relmse") for r in d.get("runs", []) if r.get("status") == "ok"]
+    errs += [p.get("relmse") for p in d.get("uniform_curve", [])]
+    errs = [float(e) for e in errs if isinstance(e, (int, float)) and np.isfinite(e) and e > 0]
+    smallest = min(errs) if errs else None
+    bound = None if smallest is None else FLOOR_FRACTION * smallest
+    floor = rf.get("noise_relmse_halves")
+    floor = float(floor) if isinstance(floor, (int, float)) and np.isfinite(floor) else None
+    spp = rf.get("spp")
+    if floor is None:
+        below = None
+        verdict = (f"reference at {spp} spp has no two-halves noise floor (an older reference; "
+                   f"variance-of-the-mean figure {_fmt(rf.get('noise_relmse'), '.2e')}, which "
+                   "under-states QMC noise): not judged, re-render it with ./cycles-adaptive "
+                   "references --floor")
+    elif bound is None:
+        below = None
+        verdict = f"reference at {spp} spp, floor {floor:.2e}: no error scored to judge it against"
+    else:
+        below = floor < bound
+        verdict = (f"reference at {spp} spp, noise floor {floor:.2e} "
+                   + ("is below" if below else "is NOT below")
+                   + f" 1/{1 / FLOOR_FRACTION:.0f} of the smallest relMSE scored ({smallest:.2e} -> "
+                   f"{bound:.2e})" + ("" if below else f"; a relMSE below {floor / FLOOR_FRACTION:.1e} "
+                                      f"is more than {FLOOR_FRACTION:.0%} the reference's own noise "
+                                      "(re-render it with a lower --reference-floor)"))
+    return {"spp": spp, "floor": floor, "floor_target": rf.get("floor_target"),
+            "noise_relmse": rf.get("noise_relmse"), "smallest_relmse": smallest, "bound": bound,
+            "below": below, "verdict": verdict}
+
+
+def references_section(res) -> list:
+    """"References": each scene's reference spp and noise floor, and whether
+    the floor is below 1/10 of the smallest error scored there (a warning line
+    per scene where it is not)."""
+    rows, warn = [], []
+    for s, d in res.get("scenes", {}).items():
+        if not isinstance(d, dict) or d.get("status") != "ok":
+            continue
+        c = d.get("reference_check") or reference_check(d)
+        mark = {True: "yes", False: "**NO**", None: "not judged"}[c["below"]]
+        rows.append(f"| {s} | {c['spp']} | {_fmt(c['floor'], '.2e')} | {_fmt(c['noise_relmse'], '.2e')} | "
+                    f"{_fmt(c['floor_target'], '.2e')} | {_fmt(c['smallest_relmse'], '.2e')} | "
+                    f"{_fmt(c['bound'], '.2e')} | {mark} |")
+        if c["below"] is not True:
+            warn.append(f"- **Warning ({s})**: {c['verdict']}.")
+    if not rows:
+        return []
+    return (["## References", "",
+             "Noise floor = expected relMSE of a perfect image against the reference, from two "
+             "independently seeded halves: relMSE(half A, half B) / 4. A reference judges a scene "
+             f"when its floor is below {FLOOR_FRACTION:g} x the smallest relMSE scored there.", "",
+             "| scene | spp | floor (two halves) | floor (variance of the mean) | floor target "
+             "| smallest relMSE scored | 1/10 of it | floor below? |",
+             "|---|---|---|---|---|---|---|---|"] + rows + [""] + warn + ([""] if warn else []))
 
 
 def goal_cell(g, spec=".3g", scale=1.0) -> str:

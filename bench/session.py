@@ -169,8 +169,12 @@ class Session:
                          "the same budget's OIDN denoise seconds per megapixel: the oidn peer's "
                          "render with the denoiser minus the same render without it, rendered "
                          "right after it",
-            "reference": f"{c['reference_spp']} spp, seed {refs.REFERENCE_SEED} (independent of "
-                         "the runs), Tabulated Sobol, same Blender",
+            "reference": (f"two independent halves (seed {refs.REFERENCE_SEED} and its mask) from "
+                          f"{c['reference_spp']} spp, doubled until their noise floor is below "
+                          f"{c.get('reference_floor'):g} relMSE (at most {c.get('reference_max_spp')} spp)"
+                          if c.get("reference_floor") else
+                          f"{c['reference_spp']} spp, seed {refs.REFERENCE_SEED}")
+                         + " (independent of the runs), Tabulated Sobol, same Blender",
             "uniform_curve": "plain Cycles: one full-frame render, the scene's own sampling "
                              "pattern, no subsets",
             "oidn": "Cycles denoiser OpenImageDenoise on CPU, albedo+normal, prefilter ACCURATE, "
@@ -202,7 +206,9 @@ class Session:
         t_ref = time.perf_counter()
         ref_path = refs.ensure_reference(path, frame, cfg["resolution_percentage"], cfg["reference_spp"],
                                          directory=cfg["reference_dir"],
-                                         render_missing=cfg["render_references"], log=log)
+                                         render_missing=cfg["render_references"], log=log,
+                                         floor=cfg.get("reference_floor"),
+                                         max_spp=cfg.get("reference_max_spp", refs.DEFAULT_MAX_SPP))
         t_ref = time.perf_counter() - t_ref
         t_scene = time.perf_counter()
         refs.open_scene(path, force=True)  # a fresh file, whatever rendering the reference did
@@ -217,7 +223,8 @@ class Session:
             ref, ref_rec = refs.load_checked_reference(ref_path, size)
             out = {"status": "ok", "file": path, "frame": frame, "width": size[1], "height": size[0],
                    "reference": {"path": ref_path, **{k: ref_rec.get(k) for k in (
-                       "spp", "seed", "blender", "noise_relmse", "render_seconds", "created")}},
+                       "spp", "seed", "blender", "noise_relmse", "noise_relmse_halves", "floor_target",
+                       "half_spp", "render_seconds", "created")}},
                    "sampling_pattern_plain": pattern}
             log(f"{name}: {size[1]}x{size[0]}, frame {frame}, reference {ref_path} "
                 f"(noise floor relMSE {ref_rec.get('noise_relmse', float('nan')):.2e})")

@@ -138,7 +138,7 @@ def test_quick_results_json_has_the_figures(quick):
             assert "seconds_per_mp" in v or "skipped" in v, (m, v)
 
     tg = {t["target"]: t for t in res["targets"]}
-    assert len(tg) == len(res["targets"]) == 7 + len(targets.RUN_GOALS) + 2
+    assert len(tg) == len(res["targets"]) == 7 + len(targets.RUN_GOALS) + 2 + 4  # + auto's 2, oidn's 2
     for t in res["targets"]:
         assert isinstance(t["detail"], list) and t["detail"]
     # per-run targets: met exactly when every method run meets the goal
@@ -440,3 +440,177 @@ def test_a_goal_added_later_gets_its_verdict_target_and_column(monkeypatch):
     assert t["met"] is False and "awr" in t["detail"][1]
     md = "\n".join(report.estimates_section(sc))
     assert "calibration_ratio (in (0.8, 1.25)) |" in md and "1.3 **missed** |" in md and "1 met |" in md
+
+
+# ------------------------------------------------- reference noise floor (two halves)
+def test_halves_floor_closed_form_and_simulation():
+    """floor = relMSE(A, B) x n_a n_b / N^2: exact for a constant difference;
+    on Gaussian halves of known variance it matches Var(full) / (r^2 + 0.01)
+    and the relMSE of the full mean against the truth (core.metrics.relmse)."""
+    from cycles_adaptive.bench import references as refs
+    from cycles_adaptive.core import metrics
+    r = np.full((8, 8, 3), 0.5)
+    d = 0.2
+    assert refs.halves_floor(r + d / 2, r - d / 2, full=r) == pytest.approx(d * d / (0.25 + 0.01) / 4)
+    # unequal halves: weight n_a n_b / N^2 (3 and 1 samples: 3/16)
+    assert refs.halves_floor(r + d, r, 3, 1, full=r) == pytest.approx(d * d / 0.26 * 3 / 16)
+    rng = np.random.default_rng(7)
+    truth = rng.uniform(0.05, 2.0, (384, 384, 3))
+    for n_a, n_b in ((1, 1), (3, 1)):
+        s2 = 0.01  # per-sample variance; half h has s2 / n_h
+        a = truth + rng.normal(0, np.sqrt(s2 / n_a), truth.shape)
+        b = truth + rng.normal(0, np.sqrt(s2 / n_b), truth.shape)
+        full = (n_a * a + n_b * b) / (n_a + n_b)
+        expect = float((s2 / (n_a + n_b) / (truth ** 2 + metrics.REL_EPS)).mean())
+        got = refs.halves_floor(a, b, n_a, n_b, full=truth)
+        assert got == pytest.approx(expect, rel=0.02)
+        assert got == pytest.approx(metrics.relmse(full, truth), rel=0.03)
+    # the default denominator (the noisy full mean, as the scoring uses) is close at low noise
+    s2 = 1e-4
+    a, b = (truth + rng.normal(0, np.sqrt(s2), truth.shape) for _ in range(2))
+    expect = float((s2 / 2 / (truth ** 2 + metrics.REL_EPS)).mean())
+    assert refs.halves_floor(a, b) == pytest.approx(expect, rel=0.03)
+    with pytest.raises(ValueError):
+        refs.halves_floor(r, r[:4])
+
+
+class _FakeRenderer:
+    """A renderer of known noise: sample i of half h is truth + N(0, s2), fixed
+    per (half, i) (drawn once, up to ``most`` samples a half), so a half is one
+    sample sequence however it is split into tasks."""
+
+    def __init__(self, truth, s2, most=2048):
+        self.truth, self.calls = truth, []
+        rng = np.random.default_rng(11)
+        self.noise = [rng.normal(0.0, np.sqrt(s2), (most,) + truth.shape).astype(np.float32)
+                      for _ in range(2)]
+
+    def __call__(self, half, task):
+        self.calls.append((half, task.offset, task.samples))
+        h, w = self.truth.shape[:2]
+        part = self.noise[half][task.offset:task.offset + task.samples]
+        assert len(part) == task.samples, "asked past the fake's samples"
+        rgb = self.truth + part.astype(np.float64).mean(axis=0)
+        return np.concatenate([rgb, np.ones((h, w, 1))], axis=-1), {}
+
+
+def test_converge_halves_stops_at_the_first_spp_below_the_floor():
+    """With per-sample variance s2 and truth 1, the floor at N spp is about
+    s2 / (N (1 + 0.01)); the loop doubles from 1024 and stops at the first N
+    below the target (placed at 0.7x of the 4096-spp floor: stops at 4096),
+    each half continuing its own sample sequence without gaps or overlaps."""
+    from cycles_adaptive.bench import references as refs
+    truth = np.ones((24, 24, 3))
+    s2 = 4.0
+    floor_at = lambda n: s2 / n / 1.01
+    fake = _FakeRenderer(truth, s2)
+    res = refs.converge_halves(fake, truth.shape[:2], 1024, floor=floor_at(4096) / 0.7, max_spp=16384)
+    assert [n for n, _ in res["history"]] == [1024, 2048, 4096]
+    assert res["counts"] == (2048, 2048)
+    for (n, f) in res["history"]:
+        assert f == pytest.approx(floor_at(n), rel=0.15)
+    for half in (0, 1):
+        spans = sorted((o, o + k) for h, o, k in fake.calls if h == half)
+        assert spans[0][0] == 0 and spans[-1][1] == 2048
+        assert all(a[1] == b[0] for a, b in zip(spans, spans[1:]))  # contiguous, no overlap
+    # merged exactly by sample count: the full mean is the mean of both halves' samples
+    a, _ = fake(0, type("T", (), {"offset": 0, "samples": 2048})())
+    b, _ = fake(1, type("T", (), {"offset": 0, "samples": 2048})())
+    assert np.allclose(res["full"].color.mean, (a[..., :3] + b[..., :3]) / 2, atol=1e-9)
+    assert np.allclose(res["full"].n, 4096)
+    # the cap: a floor never reached stops at max_spp, the last step clamped to it
+    fake = _FakeRenderer(truth, s2)
+    res = refs.converge_halves(fake, truth.shape[:2], 1024, floor=1e-12, max_spp=3000)
+    assert res["floor"] == pytest.approx(floor_at(3000), rel=0.15)
+    assert [n for n, _ in res["history"]] == [1024, 2048, 3000] and res["counts"] == (1500, 1500)
+    # no floor: exactly the spp asked for (odd: one more sample in half A)
+    res = refs.converge_halves(_FakeRenderer(truth, s2), truth.shape[:2], 1025)
+    assert res["counts"] == (513, 512) and len(res["history"]) == 1
+    assert refs.next_half_spp(512, 16384) == 1024 and refs.next_half_spp(8192, 16384) == 8192
+
+
+def _write_reference(tmp_path, blend, spp, record):
+    """A reference EXR + sidecar in tmp_path as references.py names them."""
+    from cycles_adaptive.bench import references as refs
+    from cycles_adaptive.core import io as imageio
+    path = refs.reference_path(str(blend), 1, 100, spp, str(tmp_path))
+    os.makedirs(os.path.dirname(path), exist_ok=True)
+    rgb = np.full((4, 4, 4), 0.5, np.float32)
+    imageio.write_layers(path, {"Combined": rgb})
+    imageio.write_text(refs.sidecar_path(path), json.dumps(record))
+    return path
+
+
+def test_old_sidecars_still_load_and_floor_requests_pick_converged_ones(tmp_path):
+    """A version-1 sidecar (one seed, no halves floor) still serves a fixed-spp
+    request and loads; a floor request skips it and takes a version-2 reference
+    whose halves floor is below the target, or one at the cap."""
+    from cycles_adaptive.bench import references as refs
+    from cycles_adaptive.bench import report
+    blend = tmp_path / "x.blend"
+    blend.write_bytes(b"a scene")
+    old = refs.wanted_record(str(blend), 1, 100, 1024, refs.REFERENCE_SEED)
+    old.update(version=1, noise_relmse=1e-4)
+    p_old = _write_reference(tmp_path, blend, 1024, old)
+    want = refs.wanted_record(str(blend), 1, 100, 1024, refs.REFERENCE_SEED)
+    assert want["version"] == 2 and refs.mismatch(old, want) == []
+    assert refs.ensure_reference(str(blend), 1, 100, 1024, directory=str(tmp_path),
+                                 render_missing=False) == p_old
+    rgb, rec = refs.load_checked_reference(p_old, (4, 4))
+    assert rgb.shape == (4, 4, 3) and rec["version"] == 1
+    assert refs.mismatch({**old, "version": 3}, want) == ["version"]
+    # a floor request: the old one has no halves floor
+    assert refs.find_floor_reference(str(blend), 1, 100, refs.REFERENCE_SEED, 1e-3, 16384,
+                                     str(tmp_path)) is None
+    with pytest.raises(refs.ReferenceFileError, match="--floor"):
+        refs.ensure_reference(str(blend), 1, 100, 1024, directory=str(tmp_path), render_missing=False,
+                              floor=1e-3)
+    new = refs.wanted_record(str(blend), 1, 100, 4096, refs.REFERENCE_SEED)
+    new.update(noise_relmse_halves=5e-4)
+    p_new = _write_reference(tmp_path, blend, 4096, new)
+    find = lambda f, cap: refs.find_floor_reference(str(blend), 1, 100, refs.REFERENCE_SEED, f, cap,
+                                                     str(tmp_path))
+    assert find(1e-3, 16384) == p_new      # 5e-4 < 1e-3
+    assert find(1e-4, 16384) is None       # above the target, below the cap
+    assert find(1e-4, 4096) == p_new       # at the cap
+    assert refs.ensure_reference(str(blend), 1, 100, 1024, directory=str(tmp_path), render_missing=False,
+                                 floor=1e-3) == p_new
+    # the report: an old reference is not judged, a converged one is, a noisy one warns
+    scene = lambda path, errs: {"status": "ok", "reference": {"path": path, "spp": None},
+                                "runs": [{"status": "ok", "relmse": e} for e in errs],
+                                "uniform_curve": [{"relmse": 1e-2}]}
+    assert report.reference_check(scene(p_old, [3e-3]))["below"] is None
+    c = report.reference_check(scene(p_new, [6e-3, 5.1e-3]))
+    assert c["below"] is True and c["bound"] == pytest.approx(5.1e-4) and c["spp"] == 4096
+    assert report.reference_check(scene(p_new, [4.9e-3]))["below"] is False
+    md = "\n".join(report.references_section({"scenes": {"x": scene(p_new, [4.9e-3])}}))
+    assert "| x | 4096 | 5.00e-04 |" in md and "Warning (x)" in md and "NOT below" in md
+    # a converged reference from another Blender version is refused by name, not silently re-rendered
+    other = tmp_path / "other"
+    _write_reference(other, blend, 8192, {**new, "spp": 8192, "blender": "3.6.0"})
+    with pytest.raises(refs.ReferenceFileError, match="3.6.0"):
+        refs.ensure_reference(str(blend), 1, 100, 1024, directory=str(other), floor=1e-3)
+
+
+def test_auto_and_oidn_targets_on_hand_made_runs():
+    """auto is judged against the best other run of its scene and budget
+    (0.95x) and plain Cycles (1.0x); oidn against uniform + OIDN (1.3x lower
+    relMSE, geometric mean) and Cycles' OIDN (1.2x the speed-up, never < 1)."""
+    from cycles_adaptive.bench import targets
+    runs = [_run("auto", speedup=3.0, chosen="oidn-uniform"), _run("lp", speedup=2.0),
+            _run("oidn", relmse=0.006, speedup=3.7), _run("uniform-oidn", kind="uniform_sampling", relmse=0.009),
+            dict(_run("oidn", kind="peer", speedup=3.1), method="oidn")]
+    sc = {"cornell": _scene(runs, "cornell")}
+    for r, v in zip(sc["cornell"]["runs"], (3.0, 2.0, 3.7, None, 3.1)):
+        r["speedup"] = v
+    a_best, a_plain, o_uni, o_peer = targets.auto_targets(sc) + targets.oidn_targets(sc)
+    assert a_best["met"] is False and "best oidn 3.70x: 0.81 of it" in a_best["detail"][0]
+    assert a_plain["met"] is True
+    assert o_uni["met"] is True and "1.50x" in o_uni["detail"][0]          # 0.009 / 0.006
+    assert o_peer["met"] is False and "1.19x" in o_peer["detail"][0]       # 3.7 / 3.1 < 1.2
+    sc["cornell"]["runs"][0]["speedup"] = 3.6                              # 0.97x of the best
+    assert targets.auto_targets(sc)[0]["met"] is True
+    sc["cornell"]["runs"][0]["speedup"] = 0.9
+    assert targets.auto_targets(sc)[1]["met"] is False
+    assert targets.auto_targets({"cornell": _scene([_run("lp")], "cornell")})[0]["met"] is None
+
