@@ -369,11 +369,20 @@ class AdaptiveRun:
         plan, render, merge; adds its figures to the iteration's ``entry``.
         Returns the number of tasks rendered (0: nothing to plan)."""
         overshoot_before = self.overshoot
-        work = Work(lambda: self._adapt(budget),
-                    f"iteration {self.iteration + 1}: adapting ({self.method.NAME})",
-                    self.main_thread_only())
-        yield Progress("adapt", self.iteration, self._fraction(), work.label, work=work)
-        tasks, covered, counts = work.result()
+        if not self.method.ADAPTIVE and budget >= self.pixels:
+            # uniform sampling after the initial pass (auto's choice, a target
+            # error): whole spp as sample subsets like the initial pass, so the
+            # variance estimate keeps groups of comparable size
+            spp = budget // self.pixels
+            tasks = subset_tasks(self.width, self.height, spp, self.subsets, self.options.frame)
+            covered = np.full((self.height, self.width), spp, np.int64)
+            counts = covered.copy()
+        else:
+            work = Work(lambda: self._adapt(budget),
+                        f"iteration {self.iteration + 1}: adapting ({self.method.NAME})",
+                        self.main_thread_only())
+            yield Progress("adapt", self.iteration, self._fraction(), work.label, work=work)
+            tasks, covered, counts = work.result()
         if not tasks:
             return 0
         before = self.next_index

@@ -242,3 +242,17 @@ def test_bad_parameters_are_refused(bad):
     with pytest.raises(ValueError):
         from core.method import params_from_dict
         params_from_dict(auto.Params, bad)
+
+
+def test_uniform_sampling_after_the_choice_renders_sample_subsets():
+    """The rest of the budget under a uniform choice comes as the initial
+    pass's number of equal subsets (groups of comparable size for the
+    variance estimate), exactly the budget."""
+    truth, feats = _scene(24, 24)
+    ex = FakeExecutor(truth, feats)
+    run = _run(ex, spp=12, params={"candidates": "mean", "sampling": "uniform"})
+    assert run.method.NAME == "uniform"
+    np.testing.assert_array_equal(run.buffers.k, 8)
+    np.testing.assert_array_equal(run.buffers.n, 12)
+    assert [t.samples for t in ex.tasks] == [1, 1, 1, 1, 2, 2, 2, 2]
+    assert [t.offset for t in ex.tasks] == [0, 1, 2, 3, 4, 6, 8, 10]
