@@ -37,9 +37,10 @@ class CYCLESADAPTIVE_AP_preferences(bpy.types.AddonPreferences):
                          description="Method a new scene starts with")
     use_scene_samples: BoolProperty(name="Use Scene Samples", default=False,
                                     description="New scenes take the budget from Cycles' Render Max Samples")
-    output_path: StringProperty(name="Output", subtype="FILE_PATH", default="//adaptive.exr",
+    output_path: StringProperty(name="Output", subtype="FILE_PATH", default="",
                                 options=PATH_OPTIONS,
-                                description="Output a new scene starts with (// is the .blend's folder)")
+                                description="Output a new scene starts with (// is the .blend's folder; "
+                                            "empty: the scene's Output path, frame-numbered)")
 
     def draw(self, context):
         layout = self.layout

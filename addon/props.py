@@ -109,10 +109,11 @@ class CYCLESADAPTIVE_PG_settings(bpy.types.PropertyGroup):
 
     method: EnumProperty(name="Method", items=METHOD_ITEMS, default=Options().method,
                          description="Adaptive method: where to put samples and how to reconstruct")
-    output_path: StringProperty(name="Output", subtype="FILE_PATH", default="//adaptive.exr",
+    output_path: StringProperty(name="Output", subtype="FILE_PATH", default="",
                                 options=PATH_OPTIONS,
                                 description="Multilayer EXR written after the run (a PNG preview "
-                                            "goes beside it)")
+                                            "goes beside it); empty: the scene's Output path, "
+                                            "frame-numbered, with the method's suffix")
     frame_range: BoolProperty(name="Frame Range", default=False,
                               description="Render the scene's frame range (one output per frame, "
                                           "#### in the output path is the frame number)")

@@ -27,7 +27,7 @@ TIME_MATCH = 1.2
 SEARCH_TRIALS = 3
 OIDN_SETTINGS = {"denoiser": "OPENIMAGEDENOISE", "denoising_input_passes": "RGB_ALBEDO_NORMAL",
                  "denoising_prefilter": "ACCURATE"}
-PEER_NAMES = ("oidn", "cycles_adaptive", "cycles_adaptive+oidn")
+PEER_NAMES = ("cycles_oidn", "cycles_adaptive", "cycles_adaptive+oidn")
 
 
 class PlainCycles:
@@ -157,10 +157,10 @@ def run_peers(scene, vl, pattern, budget, ref, ours, search, cfg) -> list:
         with PlainCycles(scene, vl, cfg["seed"], pattern) as pc:
             try:
                 on = pc.render(budget, denoise=True)
-                out.append(rec_of("oidn", on, {"settings": dict(OIDN_SETTINGS),
+                out.append(rec_of("cycles_oidn", on, {"settings": dict(OIDN_SETTINGS),
                                                **denoise_timing(on, pc.render(budget))}))
             except Exception as exc:
-                out.append(_peer_error("oidn", budget, err_text(exc)))
+                out.append(_peer_error("cycles_oidn", budget, err_text(exc)))
             if target is None:
                 err = "no successful run of our methods at this budget to match the time of"
                 for n in PEER_NAMES[1:]:

@@ -83,7 +83,7 @@ def _json_default(o):
 
 
 STYLE = {"uniform": "C0", "var": "C1", "awr": "C2", "lp": "C3", "rhf": "C4",
-         "oidn": "C5", "cycles_adaptive": "C6", "cycles_adaptive+oidn": "C8"}
+         "cycles_oidn": "C5", "oidn": "C9", "auto": "C7", "cycles_adaptive": "C6", "cycles_adaptive+oidn": "C8"}
 
 
 def plot_scene(name, d, path):
@@ -103,7 +103,7 @@ def plot_scene(name, d, path):
             continue
         base = n.replace("oracle-", "").replace("uniform-", "")
         style = "--" if n.startswith("oracle-") else ":" if n.startswith("uniform-") else "-"
-        marker = "s" if n in ("oidn", "cycles_adaptive", "cycles_adaptive+oidn") else "o"
+        marker = "s" if n in ("cycles_oidn", "cycles_adaptive", "cycles_adaptive+oidn") else "o"
         ax.plot([p[0] for p in pts], [p[1] for p in pts], style, marker=marker, ms=4,
                 color=STYLE.get(base, None), alpha=0.6 if n.startswith("oracle-") else 1.0, label=n)
     rf = reference_record(d)

@@ -43,7 +43,7 @@ DEFAULT_SCENES = ("animated", "courtyard")
 DEFAULT_METHODS = ("uniform", "var", "lp", "oidn")
 TEMPORAL_MODES = ("none", "reproject", "lp")
 DEFAULT_OUT = os.path.join(refs.ROOT, "bench_out", "sequence")
-PEERS = ("cycles_uniform", "oidn", "cycles_adaptive+oidn")
+PEERS = ("cycles_uniform", "cycles_oidn", "cycles_adaptive+oidn")
 FORMULA = ("temporal error = mean over frames t = 2..T, pixels and RGB of "
            "((x_t - x_{t-1}) - (r_t - r_{t-1}))^2 / (r_t^2 + 0.01); "
            "relMSE = mean over pixels and RGB of (x_t - r_t)^2 / (r_t^2 + 0.01), per frame")
@@ -257,7 +257,7 @@ def run_peers(scene, vl, budget: int, frames, seed: int, ref0, target_seconds, c
             scene.frame_set(frames[0])
             pc.render(1)  # sync at this frame (not counted)
             out.append(sequence("cycles_uniform", lambda: pc.render(budget)))
-            out.append(sequence("oidn", lambda: pc.render(budget, denoise=True),
+            out.append(sequence("cycles_oidn", lambda: pc.render(budget, denoise=True),
                                 {"settings": dict(pe.OIDN_SETTINGS)}))
             if target_seconds is None:
                 out.append(({"kind": "peer", "name": "cycles_adaptive+oidn", "budget": int(budget),

@@ -177,7 +177,7 @@ class Session:
                          + " (independent of the runs), Tabulated Sobol, same Blender",
             "uniform_curve": "plain Cycles: one full-frame render, the scene's own sampling "
                              "pattern, no subsets",
-            "oidn": "Cycles denoiser OpenImageDenoise on CPU, albedo+normal, prefilter ACCURATE, "
+            "cycles_oidn": "Cycles denoiser OpenImageDenoise on CPU, albedo+normal, prefilter ACCURATE, "
                     "on a plain uniform render of the budget's spp",
             "cycles_adaptive": "Cycles adaptive sampling (its own default pattern, min samples "
                                f"auto), max samples {c['max_samples_factor']} x the largest budget, "
@@ -277,7 +277,7 @@ class Session:
                 p["speedup"] = finite(t_uni(p["relmse"]) / p["seconds"]["total"])
             plain = {p["spp"]: p for p in curve}
             for r in runs:  # proof that the denoiser ran: error of the same render without it
-                if r["name"] == "oidn" and r.get("status") == "ok" and r["budget"] in plain:
+                if r["name"] == "cycles_oidn" and r.get("status") == "ok" and r["budget"] in plain:
                     r["relmse_without_denoiser"] = plain[r["budget"]]["relmse"]
             out["runs"] = runs
             out["comparisons"] = compare_runs(name, runs, size[0] * size[1] / 1e6)

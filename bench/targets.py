@@ -220,7 +220,7 @@ def compare_runs(scene: str, runs: list, megapixels: float) -> list:
         sec = r["seconds"]
         cost = sec.get("adapt", 0.0) + sec.get("reconstruct", 0.0)
         r["adapt_reconstruct_s_per_mp"] = cost / mp if mp else None
-        o = ok.get(("oidn", r["budget"]), {}).get("denoise_s_per_mp")
+        o = ok.get(("cycles_oidn", r["budget"]), {}).get("denoise_s_per_mp")
         r["oidn_denoise_s_per_mp"] = o
         r["oidn_cost_ratio"] = (r["adapt_reconstruct_s_per_mp"] / o
                                 if o and o > 0 and r["adapt_reconstruct_s_per_mp"] is not None else None)
@@ -338,7 +338,7 @@ def evaluate_targets(res: dict) -> list:
     wins, counted, det = 0, 0, []
     for s in scenes:
         best = _gmean_by(runs_in(scenes[s], "method"), ADAPTIVE_METHODS + ("uniform",))
-        oidn = _gmean([r.get("speedup") for r in runs_in(scenes[s], "peer") if r["name"] == "oidn"])
+        oidn = _gmean([r.get("speedup") for r in runs_in(scenes[s], "peer") if r["name"] == "cycles_oidn"])
         if best and oidn:
             counted += 1
             wins += best[1] >= oidn
@@ -470,7 +470,7 @@ def oidn_targets(scenes: dict) -> list:
                 g = uni["relmse"] / ours["relmse"]
                 ratios.append(g)
                 det1.append(f"{s} @ {budget}: {g:.2f}x lower relMSE than uniform + OIDN")
-            peer = next((r for r in rs if r["kind"] == "peer" and r["name"] == "oidn"), None)
+            peer = next((r for r in rs if r["kind"] == "peer" and r["name"] == "cycles_oidn"), None)
             if peer is not None and ours.get("speedup") and peer.get("speedup"):
                 seen_peer = True
                 q = ours["speedup"] / peer["speedup"]

@@ -93,7 +93,8 @@ def build_parser(blender_command: bool = False, extra_commands=()) -> argparse.A
                    help="the .blend file" + (" (default: the file Blender opened)" if blender_command else ""))
     r.add_argument("--method", default=default_method, choices=list(methods.METHODS),
                    help=f"{fields_by_name(Options)['method'].metadata['help']} (default {default_method})")
-    r.add_argument("--out", help="output EXR (default: next to the .blend, NAME.METHOD.exr)")
+    r.add_argument("--out", help="output EXR (default: the scene's Output path with Blender's frame "
+                   "numbering and the method suffix: //render/shot_#### -> render/shot_0001.METHOD.exr)")
     r.add_argument("--reference", help="reference EXR to measure relMSE against")
     r.add_argument("--resolution-percentage", type=int, help="override the scene's resolution %%")
     r.add_argument("--frame", type=int, help="frame to render (default: the scene's current frame)")
@@ -171,9 +172,47 @@ def _is_user_error(exc) -> bool:
     return isinstance(exc, (UserError, JobError, SceneError, ImageFileError, ValueError, FileNotFoundError))
 
 
-def default_out(blend_path: str, method: str, suffix: str = "") -> str:
-    stem = os.path.splitext(os.path.abspath(blend_path))[0]
-    return f"{stem}.{method}{suffix}.exr"
+#: image and movie extensions Blender replaces with its output format's
+#: (``BKE_image_path_ext_from_imformat_ensure``); the default output swaps them
+#: for ``.METHOD.exr``
+IMAGE_EXTENSIONS = (".png", ".jpg", ".jpeg", ".exr", ".tif", ".tiff", ".tga", ".bmp", ".hdr", ".dpx",
+                    ".cin", ".j2c", ".jp2", ".webp", ".rgb", ".sgi", ".bw", ".rgba", ".psd")
+
+
+def default_out_pattern(scene, method: str) -> str:
+    """The default output of ``render`` and of the panel (an empty Output
+    field): the scene's Output path (``render.filepath``) as Blender resolves
+    it for a render, ``scene.render.frame_path`` semantics: ``//`` relative to
+    the .blend (to the working folder for an unsaved file), the last run of
+    ``#`` in the file name is the zero-padded frame number, a name without
+    ``#`` (or a folder, ``/tmp/``) gets four digits appended; then the method
+    suffix of every output, ``.METHOD.exr``, replacing a trailing image
+    extension (``//render/shot_####`` -> ``render/shot_0001.lp.exr``, ``/tmp/``
+    -> ``/tmp/0001.lp.exr``).  Returned as a pattern with the ``#`` run, for
+    :func:`operators.job.frame_path`."""
+    import bpy
+    path = bpy.path.abspath(scene.render.filepath)
+    folder, name = os.path.split(path)
+    if "#" not in name:
+        name += "####"
+    stem, ext = os.path.splitext(name)
+    if ext.lower() in IMAGE_EXTENSIONS and "#" in stem:
+        name = stem
+    return os.path.abspath(os.path.join(folder, f"{name}.{method}.exr"))
+
+
+def default_out(scene, method: str, frame: int) -> str:
+    """The default output EXR of one frame (:func:`default_out_pattern`)."""
+    from .job import frame_path
+    return frame_path(default_out_pattern(scene, method), frame)
+
+
+def ensure_output_folder(path: str) -> str:
+    """Create the folder of a default output (``//render/`` in the scene's
+    Output path), as Blender's render does; ``path`` returned.  An explicit
+    ``--out`` in a missing folder stays an error."""
+    os.makedirs(os.path.dirname(os.path.abspath(path)), exist_ok=True)
+    return path
 
 
 def cmd_render(args, blender_command=False) -> int:
@@ -202,10 +241,9 @@ def _log(args):
 
 
 def _render_frame(args, scene, vl, opts, cluster) -> int:
-    import bpy
     from . import farm
     from .job import RenderJob
-    out = args.out or default_out(bpy.data.filepath or "untitled.blend", args.method)
+    out = args.out or ensure_output_folder(default_out(scene, args.method, opts.frame))
     job = RenderJob(scene, vl, opts, out, reference=args.reference, overwrite=args.overwrite,
                     resume=args.resume, preview=not args.no_preview,
                     executor_factory=farm.executor_for(cluster, out))
@@ -282,7 +320,7 @@ def _render_frames(args, scene, vl, opts, cluster=None) -> int:
     if args.frame is not None:
         raise UserError("give --frame or --frames, not both")
     frames = parse_frames(args.frames, scene)
-    out = os.path.abspath(args.out or default_out(bpy_filepath(), args.method, "_####"))
+    out = os.path.abspath(args.out or ensure_output_folder(default_out_pattern(scene, args.method)))
     common = dict(reference_pattern=args.reference, temporal=args.temporal,
                   reproject_params=method_params(args, "reproject"),
                   temporal_params=method_params(args, "temporal"), preview=not args.no_preview)
@@ -307,11 +345,6 @@ def _render_frames(args, scene, vl, opts, cluster=None) -> int:
     print(f"[cycles-adaptive] {summary['exit_summary']}", flush=True)
     _report(summary, args.json)
     return EXIT_INTERRUPT if interrupted else summary["exit_code"]
-
-
-def bpy_filepath() -> str:
-    import bpy
-    return bpy.data.filepath or "untitled.blend"
 
 
 def denoise_out(passes: str, method: str) -> str:

@@ -244,20 +244,8 @@ def write_output(output: Output, path: str) -> None:
     imageio.write_layers(path, output.passes, layer=output.layer, attributes=output.attributes)
 
 
-def estimated_relmse(image: np.ndarray, error: np.ndarray) -> float:
-    """The relMSE the run's own error estimate predicts (no reference needed):
-    mean over pixels and RGB of ``error / (image^2 + 0.01)``, i.e.
-    :func:`core.metrics.relmse` with the image standing in for the reference
-    and the estimated squared error (averaged over RGB) for every channel's.
-    Non-finite terms count as 0 (pixels without an estimate); 0.0 for an
-    empty image.  For the panel's summary and the CLI's JSON."""
-    img = np.asarray(image, np.float64)[..., :3]
-    err = np.asarray(error, np.float64)
-    if img.size == 0:
-        return 0.0
-    with np.errstate(invalid="ignore", over="ignore"):
-        e = err[..., None] / (img * img + metrics.REL_EPS)
-    return float(np.where(np.isfinite(e), e, 0.0).mean())
+#: the run's own estimate of its relMSE (for the panel's summary and the CLI's JSON)
+estimated_relmse = metrics.estimated_relmse
 
 
 def _info_fields(summary: dict, info: dict, prefix: str = "") -> None:
@@ -291,6 +279,7 @@ class RenderJob:
         self.ex = ex
         ex.check_scene(scene, view_layer)
         self.scene, self.view_layer = scene, view_layer
+        self.layer_name = view_layer.name  # output() may run off the main thread: no RNA access there
         if keep_denoise_passes:
             options = dataclasses.replace(
                 options, features=tuple(dict.fromkeys(tuple(options.features) + denoise_passes())))
@@ -354,7 +343,8 @@ class RenderJob:
         (the UI's worker thread, or :meth:`output` inline)."""
         if self._final is None:
             run, rec = self.run, self.reconstructor
-            self._final = Work(lambda: run.reconstruct(rec), f"reconstructing ({self.options.method})")
+            self._final = Work(lambda: run.reconstruct(rec), f"reconstructing ({self.options.method})",
+                               run.main_thread_only())
         return self._final
 
     def _result(self, reconstruct: bool):
@@ -443,9 +433,12 @@ class RenderJob:
             attrs["cycles_adaptive/chosen"] = json.dumps(_jsonable(run.selection))
         if run.dropped:
             summary["dropped_passes"] = list(run.dropped)
+        if self.options.target_error > 0:  # the estimate at each check, and whether it got there
+            summary.update(target_error=self.options.target_error, target_met=bool(run.target_met),
+                           estimates=[{"spp": a, "estimated_relmse": b} for a, b in run.estimates])
         if self.reference is not None:
             summary.update(metrics.summary(image, error, self.reference))
-        self._output = Output(passes, self.view_layer.name, attrs, summary)
+        self._output = Output(passes, self.layer_name, attrs, summary)
         self.summary = summary
         return self._output
 
@@ -453,22 +446,136 @@ class RenderJob:
         """Reconstruct from what was rendered and, when the job has an
         ``out``, write the EXR, the PNG preview and drop the checkpoint
         (``reconstruct``: see :meth:`output`; the checkpoint is kept after a
-        partial run)."""
-        out = self.output(partial, reconstruct)
-        if self.out is None:
-            return out.summary
-        run = self.run
-        t_write = time.perf_counter()
-        write_output(out, self.out)
+        partial run).  Runs :meth:`write_steps` inline on this thread (the
+        CLI, the API, a batch operator); once the outputs are written, a later
+        call returns the same summary without writing again."""
+        steps = self.write_steps(partial, reconstruct, threaded=False)
+        while True:
+            try:
+                next(steps)  # a Work: write_steps calls its result(), which runs it here
+            except StopIteration as stop:
+                return stop.value
+
+    def write_steps(self, partial: bool = False, reconstruct: bool = True, threaded: bool = True):
+        """:meth:`finish` as a generator, for a caller that keeps a UI
+        responsive: it yields each pure part (numpy and OpenImageIO, no bpy)
+        as a :class:`core.pipeline.Work`, which the caller may run on a worker
+        thread before resuming it, and runs the bpy part on the thread that
+        resumes it (Blender's main thread).  Returns the summary (the
+        generator's value).
+
+        ``threaded``: 1. Work: :meth:`output` and the atomic EXR write
+        (seconds at 1920x1080, docs/notes/responsive-ui.md); the view layer's
+        name, the only bpy data ``output`` reads, is read before.  2. main
+        thread: the preview through Blender's colour management
+        (:meth:`_save_display_tiff`, an uncompressed 8-bit TIFF: the PNG
+        save's pixels, without its zlib cost).  3. Work: that TIFF encoded as
+        the PNG, atomically.  The EXR comes first, so a quit between the steps
+        can lose only the preview.  ``threaded=False`` (:meth:`finish`):
+        ``output`` and the preview run as before (one ``save_render`` PNG)."""
+        if getattr(self, "_written", None) is not None:
+            return self._written
+        if self.out is None:  # the API's job: nothing to write
+            return self.output(partial, reconstruct).summary
+
+        def compute_and_write():
+            out = self.output(partial, reconstruct)
+            t = time.perf_counter()
+            write_output(out, self.out)
+            px = self._preview_pixels(out) if self.preview and threaded else None
+            return out, px, time.perf_counter() - t
+
+        work = Work(compute_and_write, f"writing {self.out}")
+        yield work  # output() reads no Blender data (the layer's name is kept from __init__)
+        out, px, seconds = work.result()
         if self.preview:
-            combined = out.passes["Combined"]
-            self.ex.write_preview(self.scene, combined[0] if isinstance(combined, tuple) else combined,
-                                  preview_path(self.out))
-        run.timing.overhead += time.perf_counter() - t_write
+            t = time.perf_counter()
+            png = preview_path(self.out)
+            if threaded:
+                tmp = imageio.temp_beside(png, ".tif")
+                try:
+                    self._save_display_tiff(px, tmp)
+                    del px
+                    encode = Work(lambda: self._encode_png(tmp, png), f"writing {png}")
+                    yield encode
+                    encode.result()
+                finally:
+                    if os.path.exists(tmp):
+                        os.unlink(tmp)
+            else:
+                combined = out.passes["Combined"]
+                self.ex.write_preview(self.scene, combined[0] if isinstance(combined, tuple) else combined, png)
+            seconds += time.perf_counter() - t
+        self.run.timing.overhead += seconds
         if not partial and not self.keep_checkpoint and os.path.exists(self.ckpt):
             os.unlink(self.ckpt)
         out.summary["total_seconds"] = time.perf_counter() - self.t0
+        self._written = out.summary
         return out.summary
+
+    @staticmethod
+    def _preview_pixels(out: Output) -> tuple:
+        """The Combined pass as the flat float32 RGBA buffer of a Blender
+        image (rows bottom to top; non-finite values 0; alpha 1 where the pass
+        has none) and its width and height, as
+        :func:`addon.executor.write_preview` builds it: numpy only, so the
+        writer thread prepares it."""
+        combined = out.passes["Combined"]
+        rgba = combined[0] if isinstance(combined, tuple) else combined
+        h, w = rgba.shape[:2]
+        px = np.ones((h, w, 4), np.float32)
+        px[:, :, :rgba.shape[2]] = np.nan_to_num(rgba[:, :, :4], nan=0.0, posinf=0.0, neginf=0.0)
+        return px[::-1].reshape(-1), w, h
+
+    def _save_display_tiff(self, pixels: tuple, path: str) -> None:
+        """The bpy part of the preview (main thread): ``pixels``
+        (:meth:`_preview_pixels`) saved through the scene's colour management
+        (view transform, look, exposure, gamma, dither: ``save_render``) as an
+        uncompressed 8-bit RGBA TIFF, the same pixels a PNG save writes; the
+        image and the scene's output settings are restored."""
+        import bpy
+        px, w, h = pixels
+        img = bpy.data.images.new("cycles_adaptive_preview", w, h, alpha=True, float_buffer=True)
+        guard = self.ex.SettingsGuard()
+        try:
+            img.pixels.foreach_set(px)
+            st = self.scene.render.image_settings
+            if hasattr(st, "media_type"):
+                guard.set(st, "media_type", "IMAGE")
+            guard.set(st, "file_format", "TIFF")
+            guard.set(st, "color_mode", "RGBA")
+            guard.set(st, "color_depth", "8")
+            guard.set(st, "tiff_codec", "NONE")
+            img.save_render(path, scene=self.scene)
+        finally:
+            guard.restore()
+            bpy.data.images.remove(img)
+
+    @staticmethod
+    def _encode_png(tiff: str, png: str) -> None:
+        """Re-encode the 8-bit TIFF of :meth:`_save_display_tiff` as the PNG
+        preview ``png``, atomically (OpenImageIO, no bpy: the writer thread);
+        the pixels are copied unchanged."""
+        import OpenImageIO as oiio
+        src = oiio.ImageInput.open(tiff)
+        if src is None:
+            raise imageio.ImageFileError(f"{tiff}: cannot read the preview ({oiio.geterror()})")
+        try:
+            spec = src.spec()
+            pixels = src.read_image(0, 0, 0, spec.nchannels, oiio.UINT8)
+        finally:
+            src.close()
+        if pixels is None:
+            raise imageio.ImageFileError(f"{tiff}: cannot read the preview")
+        with imageio.atomic_path(png, ".png") as tmp:
+            dst = oiio.ImageOutput.create(tmp)
+            if dst is None or not dst.open(tmp, oiio.ImageSpec(spec.width, spec.height, spec.nchannels,
+                                                                 oiio.UINT8)):
+                raise imageio.ImageFileError(f"{png}: cannot write ({oiio.geterror()})")
+            ok = dst.write_image(pixels)
+            dst.close()
+            if not ok:
+                raise imageio.ImageFileError(f"{png}: write failed ({dst.geterror()})")
 
 
 # ================================================================ denoise
@@ -555,16 +662,20 @@ def _jsonable(d):
 
 
 def frame_path(pattern: str, frame: int) -> str:
-    """Output path of one frame: a run of '#' in ``pattern`` becomes the
-    zero-padded frame number (Blender's convention); without '#', ``_####`` is
-    inserted before the extension."""
+    """Output path of one frame: the last run of '#' in the file name of
+    ``pattern`` becomes the frame number zero-padded to its length, a minus
+    sign before a negative one (Blender's ``BLI_path_frame``: ``##`` with -3
+    gives ``-03``); without '#' in the name, ``_####`` is inserted before the
+    extension."""
     import re
-    m = list(re.finditer(r"#+", pattern))
+    head = len(pattern) - len(os.path.basename(pattern))
+    m = list(re.finditer(r"#+", pattern[head:]))
     if m:
-        last = m[-1]
-        return pattern[:last.start()] + str(frame).zfill(len(last.group())) + pattern[last.end():]
+        start, end = head + m[-1].start(), head + m[-1].end()
+        digits = ("-" if frame < 0 else "") + str(abs(frame)).zfill(end - start)
+        return pattern[:start] + digits + pattern[end:]
     stem, ext = os.path.splitext(pattern)
-    return f"{stem}_{frame:04d}{ext or '.exr'}"
+    return frame_path(f"{stem}_####{ext or '.exr'}", frame)
 
 
 def parse_frames(text: str, scene) -> list:

@@ -1,6 +1,9 @@
 """The Render Properties button: a modal operator that steps the render job
 from a timer, so Blender never freezes; progress in the panel and the status
-bar; Esc cancels and keeps (and writes) what was rendered.
+bar; Esc cancels and keeps (and writes) what was rendered.  The outputs are
+written on a writer thread (``Stepper``/``RenderJob.write_steps``), after the
+run as after Esc: Esc returns at once and the panel shows "writing..." until
+the files are complete, then the result.
 
 ``execute()`` (no window, e.g. ``bpy.ops.cycles_adaptive.render()`` from a
 script or under ``blender -b``) runs the same job synchronously.
@@ -12,20 +15,25 @@ import traceback
 import bpy
 
 from ..addon.props import method_params, options
+from .cli import default_out, default_out_pattern, ensure_output_folder
 from .job import FramesJob, JobError, RenderJob
-from .stepper import Stepper
+from .stepper import Stepper, start_writer
 
 STEP_SECONDS = 0.05  # work per timer tick before handing control back to the UI
 
 #: status-bar words of the loop's stages (``core.pipeline.Progress.stage``)
 STAGE_WORDS = {"initial": "Rendering", "adapt": "Adapting", "plan": "Planning", "render": "Rendering",
-               "checkpoint": "Saving checkpoint", "done": "Sampling done", "reconstruct": "Reconstructing"}
+               "checkpoint": "Saving checkpoint", "done": "Sampling done", "reconstruct": "Reconstructing",
+               "write": "Writing"}
 
 
 def status_line(stepper) -> str:
     """The status bar's text: percentage of the budget, the stage in words
     and the loop's message (with seconds so far while a computation runs)."""
     word = STAGE_WORDS.get(stepper.stage, "Working")
+    if stepper.writing:
+        what = "cancelled, " if stepper.cancelled else ""
+        return f"Cycles Adaptive: {what}{word}: {stepper.message}"
     return f"Cycles Adaptive: {100 * stepper.fraction:.0f}% {word}: {stepper.message}  (Esc cancels)"
 
 
@@ -38,6 +46,7 @@ def store_summary(settings, summary: dict, cancelled: bool) -> None:
     settings.last_error = float(summary.get("estimated_relmse", 0.0))
     settings.last_reconstructed = bool(summary.get("reconstructed", True))
     settings.last_method = str(summary.get("method", ""))
+    settings.last_chosen = str(summary.get("chosen", ""))  # auto: what it ran
     settings.has_result = True
     what = "Cancelled" if cancelled else "Done"
     note = "" if settings.last_reconstructed else " (not reconstructed: sample mean)"
@@ -99,7 +108,7 @@ class CYCLESADAPTIVE_OT_render(bpy.types.Operator):
         except Exception as exc:
             self.report({"ERROR"}, str(exc))
             return {"CANCELLED"}
-        self._stepper = Stepper(self._job, STEP_SECONDS)
+        self._stepper = Stepper(self._job, STEP_SECONDS, start_write=start_writer)
         s = context.scene.cycles_adaptive
         s.running, s.progress, s.status = True, 0.0, "Starting"
         wm = context.window_manager
@@ -109,27 +118,46 @@ class CYCLESADAPTIVE_OT_render(bpy.types.Operator):
         return {"RUNNING_MODAL"}
 
     def modal(self, context, event):
-        if event.type == "ESC" and event.value == "PRESS":
-            return self._end(context, cancelled=True)
+        st = self._stepper
+        if event.type == "ESC" and event.value == "PRESS" and not st.writing:
+            # returns at once: the partial result is written on a writer thread
+            # while the timer keeps ticking (Esc during the write changes nothing)
+            try:
+                st.cancel()
+            except Exception as exc:
+                return self._failed(context, exc)
+            if st.finished:  # nothing was rendered
+                return self._end(context, cancelled=True)
+            self._update(context)
+            return {"RUNNING_MODAL"}
         if event.type != "TIMER":
             return {"PASS_THROUGH"}
-        s = context.scene.cycles_adaptive
         try:
-            ended = self._stepper.step()
+            ended = st.step()
         except Exception as exc:
-            self.report({"ERROR"}, f"adaptive render failed: {exc}")
-            traceback.print_exc()
-            return self._end(context, cancelled=True, failed=True)
-        s.progress, s.status = self._stepper.fraction, self._stepper.message
+            return self._failed(context, exc)
         if ended:
-            return self._end(context, cancelled=False)
+            return self._end(context, cancelled=st.cancelled)
+        self._update(context)
+        return {"RUNNING_MODAL"}
+
+    def _update(self, context):
+        """Progress and stage into the panel, the progress bar and the status bar."""
+        s, st = context.scene.cycles_adaptive, self._stepper
+        s.progress, s.status = st.fraction, st.message
+        if st.writing and st.cancelled:
+            s.status = f"Cancelled: {st.message}"
         context.window_manager.progress_update(int(1000 * s.progress))
         if context.workspace:
-            context.workspace.status_text_set(status_line(self._stepper))
+            context.workspace.status_text_set(status_line(st))
         for area in context.screen.areas if context.screen else ():
             if area.type == "PROPERTIES":
                 area.tag_redraw()
-        return {"RUNNING_MODAL"}
+
+    def _failed(self, context, exc):
+        self.report({"ERROR"}, f"adaptive render failed: {exc}")
+        traceback.print_exc()
+        return self._end(context, cancelled=True, failed=True)
 
     def _end(self, context, cancelled: bool, failed: bool = False):
         wm = context.window_manager
@@ -142,12 +170,16 @@ class CYCLESADAPTIVE_OT_render(bpy.types.Operator):
         s = context.scene.cycles_adaptive
         s.running = False
         try:
-            summary = self._stepper.cancel() if cancelled else self._stepper.summary
+            st = self._stepper
+            if failed and not st.finished:  # the loop failed: write what was rendered, here
+                st.cancel()
+                st.wait()
+            summary = st.summary
             if summary is not None:
                 _show(self._job)
                 store_summary(s, summary, cancelled)
             else:
-                s.status = "Cancelled before any sample was rendered"
+                s.status = "Failed: nothing written" if failed else "Cancelled before any sample was rendered"
         except Exception as exc:
             s.status = f"Could not write the result: {exc}"
             self.report({"ERROR"}, s.status)
@@ -155,19 +187,26 @@ class CYCLESADAPTIVE_OT_render(bpy.types.Operator):
         return {"CANCELLED"} if cancelled or failed else {"FINISHED"}
 
     def _make_job(self, context):
+        """The job of the panel's settings.  An empty Output field means the
+        scene's Output path with Blender's frame numbering and the method
+        suffix, as the command line's default (``cli.default_out_pattern``)."""
         scene = context.scene
         s = scene.cycles_adaptive
+        opts = options(scene)
+        path = s.output_path.strip()
         if s.frame_range:
             frames = list(range(scene.frame_start, scene.frame_end + 1, max(1, scene.frame_step)))
-            out = s.output_path if "#" in s.output_path else \
-                s.output_path.replace(".exr", "_####.exr") if s.output_path.endswith(".exr") \
-                else s.output_path + "_####.exr"
-            return FramesJob(scene, context.view_layer, options(scene), out, frames,
+            if not path:
+                out = ensure_output_folder(default_out_pattern(scene, opts.method))
+            else:
+                out = path if "#" in path else \
+                    path.replace(".exr", "_####.exr") if path.endswith(".exr") else path + "_####.exr"
+            return FramesJob(scene, context.view_layer, opts, out, frames,
                              temporal=s.temporal, overwrite=s.overwrite,
                              reproject_params=method_params(s, "reproject"),
                              temporal_params=method_params(s, "temporal"))
-        return RenderJob(scene, context.view_layer, options(scene), s.output_path,
-                         overwrite=s.overwrite)
+        out = path or ensure_output_folder(default_out(scene, opts.method, scene.frame_current))
+        return RenderJob(scene, context.view_layer, opts, out, overwrite=s.overwrite)
 
 
 register, unregister = bpy.utils.register_classes_factory((CYCLESADAPTIVE_OT_render,))

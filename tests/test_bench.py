@@ -76,7 +76,7 @@ def test_quick_results_json_has_the_figures(quick):
     assert [(r["name"], r.get("error")) for r in runs if r["status"] != "ok"] == []
     names = {r["name"] for r in runs}
     want = {"uniform", *ADAPTIVE, *("oracle-" + m for m in ADAPTIVE), *("uniform-" + m for m in ADAPTIVE),
-            "oidn", "cycles_adaptive", "cycles_adaptive+oidn"}
+            "cycles_oidn", "cycles_adaptive", "cycles_adaptive+oidn"}
     assert names == want, names ^ want
     for r in runs:
         for k in RUN_FIELDS:
@@ -112,7 +112,7 @@ def test_quick_results_json_has_the_figures(quick):
         assert by[n]["beyond_map_percent"] == 0.0 and by[n]["spp_mean"] == 8.0, n
     # the sample mean as the image: no brightness shift, no negative output
     assert abs(by["uniform"]["brightness_percent"]) < 1e-9 and by["uniform"]["negative_share"] == 0.0
-    oidn = by["oidn"]
+    oidn = by["cycles_oidn"]
     assert oidn["denoise_seconds"] >= 0.0 and oidn["render_seconds_without_denoiser"] > 0.0
     assert oidn["denoise_s_per_mp"] == pytest.approx(oidn["denoise_seconds"] / (32 * 32 / 1e6))
     assert by["cycles_adaptive"]["time_ratio"] > 0 and {"threshold", "max_samples", "target_seconds"} <= \
@@ -156,7 +156,7 @@ def test_quick_markdown_has_the_tables(quick):
                     "Estimates and artefacts", "Where the samples go", "Time split and cost vs OIDN"):
         assert heading in md, heading
     assert "warm-up" in md  # the warm-up render is stated
-    for name in ("oidn", "cycles_adaptive", "lp", "rhf", "awr", "var", "uniform"):
+    for name in ("cycles_oidn", "cycles_adaptive", "lp", "rhf", "awr", "var", "uniform"):
         assert f"| {name} |" in md or f"| cornell | {name} |" in md, name
     for name in ("uniform-lp", "oracle-awr"):
         assert f"| {name} | 8 |" in md, name
@@ -274,7 +274,7 @@ def test_compare_runs_ratios_cost_and_which_comparisons_are_judged():
             _run("uniform-lp", kind="uniform_sampling", relmse=0.0125),
             _run("rhf", relmse=0.02), _run("oracle-rhf", kind="oracle", relmse=0.01),
             _run("uniform-rhf", kind="uniform_sampling", relmse=0.04),
-            {"kind": "peer", "name": "oidn", "budget": 8, "status": "ok", "relmse": 0.01,
+            {"kind": "peer", "name": "cycles_oidn", "budget": 8, "status": "ok", "relmse": 0.01,
              "seconds": {"total": 1.0}, "denoise_s_per_mp": 50.0}]
     comp = {c["method"]: c for c in targets.compare_runs("glossy", runs, 0.01)}
     lp = comp["lp"]
@@ -599,7 +599,7 @@ def test_auto_and_oidn_targets_on_hand_made_runs():
     from cycles_adaptive.bench import targets
     runs = [_run("auto", speedup=3.0, chosen="oidn-uniform"), _run("lp", speedup=2.0),
             _run("oidn", relmse=0.006, speedup=3.7), _run("uniform-oidn", kind="uniform_sampling", relmse=0.009),
-            dict(_run("oidn", kind="peer", speedup=3.1), method="oidn")]
+            dict(_run("cycles_oidn", kind="peer", speedup=3.1), method="oidn")]
     sc = {"cornell": _scene(runs, "cornell")}
     for r, v in zip(sc["cornell"]["runs"], (3.0, 2.0, 3.7, None, 3.1)):
         r["speedup"] = v

@@ -154,7 +154,7 @@ def test_tiny_end_to_end(tmp_path):
     assert d["status"] == "ok" and d["frames"] == [1, 2, 3]
     assert (d["width"], d["height"]) == (32, 24)
     runs = {r["name"]: r for r in d["runs"]}
-    assert set(runs) == {"uniform", "cycles_uniform", "oidn", "cycles_adaptive+oidn"}
+    assert set(runs) == {"uniform", "cycles_uniform", "cycles_oidn", "cycles_adaptive+oidn"}
     for r in runs.values():
         assert r["status"] == "ok", r
         assert len(r["relmse_per_frame"]) == 3

@@ -227,3 +227,77 @@ def test_max_seconds_bounds_the_wall_time(tmp_path):
     # the run's own longest task is the granularity of the check
     assert res["total_seconds"] <= limit * 1.1 + res["max_task_seconds"], res
     assert res["sampling_seconds"] <= limit + res["max_task_seconds"]
+
+
+# ------------------------------------------- default output: the scene's Output path
+@pytest.mark.parametrize("filepath", ["//render/shot_####", "DIR/", "//", "//render/shot", "//shot_####.jpg",
+                                      "//a_##_b", "//dir_##/x_###", "//shot.png", "rel/f_#"])
+def test_default_output_is_blenders_frame_path_with_the_method_suffix(tmp_path, filepath):
+    """Our resolution of render.filepath against Blender's own
+    (``scene.render.frame_path``), whose format extension becomes .METHOD.exr."""
+    from cycles_adaptive.operators import cli
+    from cycles_adaptive.operators.job import frame_path
+    blend = _blend(tmp_path, width=8, height=8)
+    bpy.ops.wm.open_mainfile(filepath=blend)
+    scene = bpy.context.scene
+    scene.render.filepath = filepath.replace("DIR/", str(tmp_path / "flat") + os.sep)
+    ext = scene.render.file_extension
+    for frame in (1, 7, 12345, -3):
+        blender = scene.render.frame_path(frame=frame)
+        assert blender.endswith(ext)
+        ours = cli.default_out(scene, "lp", frame)
+        assert ours == os.path.abspath(blender[:-len(ext)] + ".lp.exr"), (filepath, frame)
+        assert frame_path(cli.default_out_pattern(scene, "awr"), frame) == ours[:-len(".lp.exr")] + ".awr.exr"
+
+
+def test_render_without_out_writes_to_the_scenes_output_path_and_never_overwrites(tmp_path):
+    from blend_util import build_scene
+    build_scene(16, 12)
+    scene = bpy.context.scene
+    scene.render.filepath = "//render/shot_####"
+    scene.frame_start, scene.frame_end, scene.frame_current = 1, 3, 3
+    blend = str(tmp_path / "shot.blend")
+    bpy.ops.wm.save_as_mainfile(filepath=blend, compress=True)
+    out = tmp_path / "render" / "shot_0003.uniform.exr"
+    r = _cli("render", blend, "--method", "uniform", "--spp", "2", "--json", "--quiet")
+    assert r.returncode == 0, r.stderr
+    res = _last_json(r.stdout)
+    assert res["out"] == str(out) and out.is_file() and (tmp_path / "render" / "shot_0003.uniform.png").is_file()
+    assert not (tmp_path / "shot.uniform.exr").exists()  # no longer beside the .blend
+    before = out.stat().st_mtime_ns
+    r = _cli("render", blend, "--method", "uniform", "--spp", "2", "--quiet")
+    assert r.returncode == 2 and "--overwrite" in r.stderr and out.stat().st_mtime_ns == before
+    r = _cli("render", blend, "--method", "var", "--spp", "4", "--initial-spp", "2", "--frames", "1-2",
+             "--quiet", "--task-cost", "64")
+    assert r.returncode == 0, r.stderr
+    assert sorted(p.name for p in (tmp_path / "render").glob("*.exr")) == \
+        ["shot_0001.var.exr", "shot_0002.var.exr", "shot_0003.uniform.exr"]
+
+
+def test_the_panels_empty_output_field_follows_the_scenes_output_path(tmp_path):
+    import types
+
+    from blend_util import build_scene
+    from launch import load_package
+    from cycles_adaptive.operators.render_op import CYCLESADAPTIVE_OT_render
+    pkg = load_package()
+    pkg.register()
+    try:
+        build_scene(8, 8)
+        scene = bpy.context.scene
+        bpy.ops.wm.save_as_mainfile(filepath=str(tmp_path / "p.blend"))
+        scene.render.filepath = "//frames/f_###"
+        scene.frame_current, scene.frame_start, scene.frame_end = 5, 4, 6
+        s = scene.cycles_adaptive
+        s.output_path, s.method = "", "awr"
+        ctx = types.SimpleNamespace(scene=scene, view_layer=bpy.context.view_layer)
+        job = CYCLESADAPTIVE_OT_render._make_job(None, ctx)
+        blender = scene.render.frame_path(frame=5)
+        assert job.out == str(tmp_path / "frames" / "f_005.awr.exr") == blender[:-4] + ".awr.exr"
+        s.frame_range = True
+        frames = CYCLESADAPTIVE_OT_render._make_job(None, ctx)
+        assert frames.out_pattern == str(tmp_path / "frames" / "f_###.awr.exr") and frames.frames == [4, 5, 6]
+        s.frame_range, s.output_path = False, "//mine.exr"  # a path in the field is used as given
+        assert CYCLESADAPTIVE_OT_render._make_job(None, ctx).out == str(tmp_path / "mine.exr")
+    finally:
+        pkg.unregister()

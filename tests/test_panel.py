@@ -160,10 +160,13 @@ def test_the_summary_of_a_run_is_stored_and_drawn(addon):
 def test_the_status_line_names_the_stage():
     from cycles_adaptive.core.pipeline import Progress
     from cycles_adaptive.operators.render_op import status_line
-    st = types.SimpleNamespace(stage="adapt", fraction=0.25, message="iteration 2: adapting (lp) (3 s)")
+    st = types.SimpleNamespace(stage="adapt", fraction=0.25, message="iteration 2: adapting (lp) (3 s)",
+                               writing=False, cancelled=False)
     assert status_line(st).startswith("Cycles Adaptive: 25% Adapting: iteration 2: adapting (lp) (3 s)")
     st.stage = "reconstruct"
     assert "Reconstructing" in status_line(st)
+    st.stage, st.writing, st.cancelled, st.message = "write", True, True, "writing out.exr"
+    assert status_line(st) == "Cycles Adaptive: cancelled, Writing: writing out.exr"
     assert Progress("write", 0, 1.0, "w").stage == "write"
 
 
@@ -225,3 +228,15 @@ def test_register_unregister_register_again(addon):
     addon.register()
     assert bpy.types.CYCLESADAPTIVE_PT_panel.bl_parent_id == "CYCLES_RENDER_PT_sampling"
     assert "cycles_adaptive" in sys.modules
+
+
+def test_the_last_result_names_autos_choice():
+    from cycles_adaptive.addon.panel import summary_lines
+    from cycles_adaptive.operators.render_op import store_summary
+    s = build_scene(8, 8).cycles_adaptive
+    store_summary(s, {"method": "auto", "chosen": "uniform-lp", "spp_mean": 16.0, "total_seconds": 2.0,
+                      "estimated_relmse": 0.01, "reconstructed": True, "out": "x.exr"}, False)
+    assert summary_lines(s)[0] == "Automatic: uniform-lp"
+    store_summary(s, {"method": "lp", "spp_mean": 8.0, "total_seconds": 1.0, "out": "y.exr"}, False)
+    assert summary_lines(s)[0].startswith("Linear predictions")
+

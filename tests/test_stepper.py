@@ -83,11 +83,12 @@ def test_step_runs_to_the_end_and_writes_the_result():
 
 def test_cancel_closes_the_generator_and_keeps_what_was_rendered():
     job = FakeJob(10)
-    st = Stepper(job, slice_seconds=0.0)
+    st = Stepper(job, slice_seconds=0.0)  # no writer thread: the write runs inside cancel()
     st.step(), st.step(), st.step()
     summary = st.cancel()
     assert job.closed and summary == {"partial": True, "reconstructed": False}
     assert job.finished_with == (True, False)  # the sample mean, written at once
+    assert st.finished and not st.writing and st.summary is summary
 
 
 def test_cancel_before_anything_rendered_writes_nothing():
@@ -160,3 +161,209 @@ def test_message_counts_seconds_while_a_work_runs():
     release.set()
     threads.join()
     assert st.step() is True and st.message == "step 2"
+
+
+# ------------------------------------------------- outputs off the main thread
+class WritingJob(FakeJob):
+    """A FakeJob with ``write_steps`` as RenderJob has: one Work (the EXR
+    write) that blocks until ``gate`` is set, then a part on the main thread."""
+
+    def __init__(self, n):
+        super().__init__(n)
+        self.gate, self.writer_threads, self.main_part = threading.Event(), [], False
+
+    def write_steps(self, partial=False, reconstruct=True):
+        _main()
+
+        def write():
+            self.writer_threads.append(threading.current_thread())
+            self.gate.wait(60)
+        work = Work(write, "writing (test)")
+        yield work
+        work.result()
+        _main()
+        self.main_part = True
+        return {"partial": partial, "reconstructed": reconstruct, "written": True}
+
+
+def _writer_threads():
+    threads = []
+
+    def start(fn):
+        from cycles_adaptive.operators.stepper import start_writer
+        threads.append(start_writer(fn))
+    return threads, start
+
+
+def test_esc_returns_while_the_write_is_still_running_and_the_ui_ticks_until_it_ends():
+    job = WritingJob(10)
+    threads, start = _writer_threads()
+    st = Stepper(job, slice_seconds=0.0, start_write=start)
+    st.step(), st.step(), st.step()
+    assert st.cancel() is None  # returned: the write is blocked on the gate
+    assert job.closed and st.writing and st.cancelled and not job.main_part and st.stage == "write"
+    for _ in range(5):
+        assert st.step() is False and st.writing  # timer ticks meanwhile
+    assert st.cancel() is None and len(threads) == 1  # a second Esc changes nothing
+    assert job.writer_threads == threads and threads[0] is not threading.main_thread()
+    assert not threads[0].daemon  # the interpreter's shutdown (Blender's quit) waits for it
+    job.gate.set()
+    threads[0].join(60)
+    assert st.step() is True and job.main_part and not st.writing
+    assert st.summary == {"partial": True, "reconstructed": False, "written": True}
+    assert job.finished_with is None  # written through write_steps, not finish()
+
+
+def test_the_end_of_a_run_is_written_off_the_main_thread_too():
+    job = WritingJob(3)
+    threads, start = _writer_threads()
+    st = Stepper(job, slice_seconds=10.0, start_write=start)
+    assert st.step() is False and st.writing and not st.cancelled
+    assert st.message.startswith("writing")
+    job.gate.set()
+    threads[0].join(60)
+    assert st.step() is True and st.summary["partial"] is False and st.summary["reconstructed"]
+
+
+def test_wait_finishes_a_pending_write_on_the_calling_thread():
+    job = WritingJob(4)
+    threads, start = _writer_threads()
+    st = Stepper(job, slice_seconds=0.0, start_write=start)
+    st.step()
+    st.step()
+    st.cancel()
+    job.gate.set()
+    assert st.wait() == {"partial": True, "reconstructed": False, "written": True} and job.main_part
+
+
+def test_a_failed_write_raises_once_and_is_not_retried():
+    class Failing(WritingJob):
+        def write_steps(self, partial=False, reconstruct=True):
+            work = Work(lambda: 1 / 0, "writing (test)")
+            yield work
+            work.result()
+    job = Failing(3)
+    st = Stepper(job, slice_seconds=0.0, start_write=lambda fn: fn())  # "thread" that runs at once
+    st.step(), st.step()
+    st.cancel()
+    with pytest.raises(ZeroDivisionError):
+        st.step()
+    assert st.finished and not st.writing and st.step() is True and st.summary is None
+
+
+def test_esc_before_the_exr_is_written_then_complete_files_match_an_inline_write(tmp_path, monkeypatch):
+    """A real (tiny) render: Esc returns while the EXR write is held back on
+    the writer thread (no file yet); afterwards the EXR holds every pass of
+    the job's output, the PNG preview has the pixels of Blender's direct PNG
+    save (the main-thread path of the CLI), no temporary file is left, and
+    finish() returns the same summary without writing again."""
+    bpy = pytest.importorskip("bpy")
+    import os
+
+    import numpy as np
+    from blend_util import build_scene
+
+    from cycles_adaptive.addon import executor as ex
+    from cycles_adaptive.core import io as imageio
+    from cycles_adaptive.core.pipeline import Options
+    from cycles_adaptive.operators import job as job_mod
+
+    gate, exr_threads = threading.Event(), []
+    real_write = job_mod.write_output
+
+    def held_write(output, path):
+        exr_threads.append(threading.current_thread())
+        gate.wait(60)
+        real_write(output, path)
+    monkeypatch.setattr(job_mod, "write_output", held_write)
+    real_tiff = job_mod.RenderJob._save_display_tiff
+
+    def tiff_on_main(self, *a):
+        _main()  # the preview's bpy part
+        return real_tiff(self, *a)
+    monkeypatch.setattr(job_mod.RenderJob, "_save_display_tiff", tiff_on_main)
+
+    scene = build_scene(24, 16)
+    out = str(tmp_path / "esc.exr")
+    png = str(tmp_path / "esc.png")
+    opts = Options(method="var", spp=8, initial_spp=2, subsets=2, frame=scene.frame_current, task_cost=64)
+    job = job_mod.RenderJob(scene, bpy.context.view_layer, opts, out)
+    threads, start = _writer_threads()
+    st = Stepper(job, slice_seconds=0.0, start=Threads(), start_write=start)
+    for _ in range(4):
+        assert st.step() is False
+    assert st.cancel() is None and st.writing
+    assert not os.path.exists(out) and not os.path.exists(png)  # Esc came back before the write
+    assert st.step() is False and job.view_layer is not bpy.context.view_layer  # name only, off-thread
+    gate.set()
+    while not st.step():
+        for t in threads:
+            t.join(60)
+    summary = st.summary
+    assert exr_threads and exr_threads[0] is not threading.main_thread() and not exr_threads[0].daemon
+    assert job.view_layer == bpy.context.view_layer and summary["partial"] and not summary["reconstructed"]
+    passes, meta = imageio.read_layers(out)
+    expected = job.output().passes
+    assert set(passes) == set(expected)
+    for name, value in expected.items():
+        arr = np.asarray(value[0] if isinstance(value, tuple) else value, np.float32)
+        assert np.array_equal(passes[name].reshape(arr.shape), arr), name
+    assert np.array_equal(passes["Combined"][..., :3], passes["Noisy"][..., :3])  # the sample mean
+    attrs = meta["attributes"]
+    assert attrs["cycles_adaptive/partial"] == "true" and attrs["cycles_adaptive/reconstructed"] == "false"
+    assert os.path.isfile(out + ".checkpoint.npz")  # kept for --resume
+    direct = str(tmp_path / "direct.png")
+    ex.write_preview(scene, expected["Combined"][0] if isinstance(expected["Combined"], tuple)
+                     else expected["Combined"], direct)
+    a, b = imageio.read_layers(png)[0][""], imageio.read_layers(direct)[0][""]
+    assert a.shape == b.shape == (16, 24, 4) and np.array_equal(a, b)
+    assert not [f for f in os.listdir(tmp_path) if f.startswith(".tmp-")]
+    assert job.finish(partial=True) is summary and len(exr_threads) == 1  # nothing written twice
+
+
+def test_esc_in_a_frame_range_writes_the_frame_in_progress_on_the_writer_thread(tmp_path):
+    bpy = pytest.importorskip("bpy")
+    import os
+
+    from blend_util import build_scene
+
+    from cycles_adaptive.core import io as imageio
+    from cycles_adaptive.core.pipeline import Options
+    from cycles_adaptive.operators.job import FramesJob
+
+    scene = build_scene(16, 12)
+    scene.frame_start, scene.frame_end = 1, 2
+    opts = Options(method="var", spp=6, initial_spp=2, subsets=2, frame=1, task_cost=64)
+    job = FramesJob(scene, bpy.context.view_layer, opts, str(tmp_path / "f_####.exr"), [1, 2])
+    threads, start = _writer_threads()
+    st = Stepper(job, slice_seconds=0.0, start=Threads(), start_write=start)
+    while job.job is None or job.job.options.frame != 2 or job.job.run is None or job.job.run.buffers is None:
+        assert st.step() is False
+    st.cancel()
+    assert st.writing and threads  # the frame in progress is written on the writer thread
+    while not st.step():
+        for t in threads:
+            t.join(60)
+    summary = st.summary
+    assert summary["outs"] == [str(tmp_path / "f_0001.exr"), str(tmp_path / "f_0002.exr")]
+    meta = imageio.read_layers(str(tmp_path / "f_0002.exr"))[1]["attributes"]
+    assert meta["cycles_adaptive/partial"] == "true" and os.path.isfile(str(tmp_path / "f_0002.png"))
+
+
+def test_loop_works_are_daemons_joined_by_the_exit_hook():
+    from cycles_adaptive.operators import stepper
+    release, seen = threading.Event(), []
+    t = start_thread(lambda: (release.wait(60), seen.append(1)))
+    assert t.daemon and t in stepper._running
+    release.set()
+    stepper._join_running()  # what the interpreter's exit runs
+    assert not t.is_alive() and seen == [1]
+
+
+def test_a_work_that_must_run_on_the_main_thread_runs_inline():
+    ran_on = []
+    work = Work(lambda: ran_on.append(threading.current_thread()) or 5, "oidn (Blender's)", main_thread=True)
+    started = []
+    job = FakeJob(3, work_at=1, work=work)
+    st = Stepper(job, slice_seconds=10.0, start=started.append)
+    assert st.step() is True and started == [] and ran_on == [threading.main_thread()] and job.results == [5]

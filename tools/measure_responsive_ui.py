@@ -1,5 +1,9 @@
 """Esc latency and main-thread blocking of the stepped UI path at W x H with a
-synthetic executor (numpy renders, no Cycles): python tools/measure_responsive_ui.py METHOD W H."""
+synthetic executor (numpy renders, no Cycles):
+python tools/measure_responsive_ui.py METHOD W H [cancel|profile|full].
+``cancel``: Esc during an adaptation with the outputs on a writer thread (as
+the modal operator runs it): how long cancel() blocks, the longest timer tick
+until the files are complete, and the former synchronous write for comparison."""
 import os, sys, threading, time
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 sys.path[:0] = [ROOT, os.path.join(ROOT, "tests"), os.path.join(ROOT, "tests", "core")]
@@ -13,7 +17,7 @@ from cycles_adaptive.core import methods
 from cycles_adaptive.core.buffers import FEATURE_CHANNELS
 from cycles_adaptive.core.pipeline import Options
 from cycles_adaptive.operators.job import RenderJob
-from cycles_adaptive.operators.stepper import Stepper
+from cycles_adaptive.operators.stepper import Stepper, start_writer
 
 method, W, H = sys.argv[1], int(sys.argv[2]), int(sys.argv[3])
 mode = sys.argv[4] if len(sys.argv) > 4 else "cancel"
@@ -33,12 +37,16 @@ class Synth(FakeExecutor):
 
 scene = build_scene(16, 16)
 opts = Options(method=method, spp=4, initial_spp=2, subsets=2, iterations=2, frame=1)
+os.makedirs("/tmp/ui", exist_ok=True)
 job = RenderJob(scene, bpy.context.view_layer, opts, f"/tmp/ui/out_{method}_{mode}.exr", overwrite=True,
                 executor_factory=Synth)
 threads = []
 def start(fn):
     t = threading.Thread(target=fn, daemon=True); t.start(); threads.append(t)
-st = Stepper(job, slice_seconds=0.05, start=start)
+writers = []
+def start_w(fn):
+    writers.append(start_writer(fn))
+st = Stepper(job, slice_seconds=0.05, start=start, start_write=start_w)
 blocks = []  # (seconds, stage) of each step() call
 while True:
     t0 = time.perf_counter(); ended = st.step(); dt = time.perf_counter() - t0
@@ -52,15 +60,28 @@ while True:
         polls = []
         for _ in range(20):
             t0 = time.perf_counter(); st.step(); polls.append(time.perf_counter() - t0)
-        t0 = time.perf_counter(); s = st.cancel(); dt = time.perf_counter() - t0
+        t0 = time.perf_counter(); st.cancel(); esc = time.perf_counter() - t0
+        busy = threads[-1].is_alive()
+        ticks = []
+        while True:  # the modal's timer: a step() every 10 ms until the files are complete
+            t1 = time.perf_counter(); ended = st.step(); ticks.append(time.perf_counter() - t1)
+            if ended:
+                break
+            time.sleep(0.01)
+        written = time.perf_counter() - t0
+        s = st.summary
         print(f"{method} {W}x{H}: step() while adapting: max {max(polls)*1e3:.3f} ms; "
-              f"Esc (cancel) returned in {dt:.2f} s (work still running: {not threads[-1].is_alive() is False}); "
-              f"reconstructed={s['reconstructed']} spp={s['spp_mean']:.2f}")
+              f"Esc (cancel) returned in {esc:.3f} s (adaptation still running: {busy}); "
+              f"files complete {written:.2f} s after Esc, longest timer tick meanwhile {max(ticks):.3f} s "
+              f"({len(ticks)} ticks); reconstructed={s['reconstructed']} spp={s['spp_mean']:.2f}")
         t0 = time.perf_counter(); threads[-1].join(); print(f"  abandoned work finished {time.perf_counter()-t0:.1f} s later")
-        t0 = time.perf_counter(); job._output = None; job.finish(partial=True, reconstruct=False)
-        print(f"  the same cancel output with no worker running: {time.perf_counter()-t0:.2f} s")
-        t0 = time.perf_counter(); job._output = None; job.output(partial=True, reconstruct=True)
-        print(f"  before (cancel reconstructed inline): reconstruction+output {time.perf_counter()-t0:.2f} s")
+        from cycles_adaptive.addon.display import show_result
+        res, run = job.result, job.run
+        alpha = run.buffers.features["alpha"].mean if "alpha" in run.buffers.features else None
+        t0 = time.perf_counter(); show_result(res.image, run.buffers.n, res.error, alpha)
+        print(f"  then on the main thread, the result shown in the Image Editor (show_result): {time.perf_counter()-t0:.2f} s")
+        t0 = time.perf_counter(); job._output = job._written = None; job.finish(partial=True, reconstruct=False)
+        print(f"  before (Esc wrote inline on the main thread), with no worker running: {time.perf_counter()-t0:.2f} s")
         break
     if ended:
         by = {}
