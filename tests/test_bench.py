@@ -614,3 +614,9 @@ def test_auto_and_oidn_targets_on_hand_made_runs():
     assert targets.auto_targets(sc)[1]["met"] is False
     assert targets.auto_targets({"cornell": _scene([_run("lp")], "cornell")})[0]["met"] is None
 
+
+
+def test_auto_and_oidn_targets_without_runs_say_so():
+    from cycles_adaptive.bench import targets
+    for t in targets.auto_targets({}) + targets.oidn_targets({}):
+        assert t["met"] is None and t["detail"] and t["detail"][0].startswith("no ")
