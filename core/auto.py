@@ -342,6 +342,14 @@ class Selection:
     params: dict = field(default_factory=dict)
 
 
+def _guard(reconstruction: str) -> dict:
+    """OIDN runs without the loop's consistency guard: it removes fireflies,
+    which the guard puts back, more so the more sample groups a pixel has
+    (docs/notes/oidn.md: uniform + OIDN on cornell at 8 spp 2.29e-3 without,
+    2.50e-3 with it); the other reconstructions keep ``Options.guard_z``."""
+    return {"guard_z": 0.0} if reconstruction == "oidn" else {}
+
+
 def candidate_params(reconstruction: str, sampling: str, target_error: float = 0.0) -> dict:
     """Parameters auto runs a candidate with: the defaults, except that
     uniform sampling + OIDN skips OIDN's own error estimate (two more calls
@@ -581,7 +589,7 @@ def select(crops: list, subset_data: list, ctx: Context, rel_var, params: Params
         rec = "oidn" if "oidn" in names else (names[1] if len(names) > 1 else "mean")
         m = method(rec, "uniform")
         params = candidate_params(rec, "uniform", ctx.target_error)
-        return Selection(m, {"chosen": m.NAME, "params": params, "candidates": [],
+        return Selection(m, {"chosen": m.NAME, "params": params, **_guard(rec), "candidates": [],
                              "why": f"the initial pass has {len(subset_data[0]) if subset_data else 0} "
                                     f"sample subsets; cross-validation needs 4 (--subsets 4): "
                                     f"{m.NAME} by default"}, params)
@@ -597,6 +605,7 @@ def select(crops: list, subset_data: list, ctx: Context, rel_var, params: Params
     best = rows[0]
     chosen = method(best["reconstruction"], best["sampling"])
     params = candidate_params(best["reconstruction"], best["sampling"], ctx.target_error)
+    extra = _guard(best["reconstruction"])
     runner = rows[1] if len(rows) > 1 else None
     why = (f"highest predicted equal-error speed-up over plain Cycles: {best['speedup']:.2f}x "
            f"(relMSE {best['relmse']:.2e} in {best['seconds']:.2f} s)")
@@ -604,7 +613,7 @@ def select(crops: list, subset_data: list, ctx: Context, rel_var, params: Params
         why += f"; next {runner['name']} {runner['speedup']:.2f}x"
     why += f"; {len(tiles)} tile(s) cross-validated in {time.perf_counter() - t0:.2f} s"
     return Selection(chosen, {"chosen": chosen.NAME, "params": params, "candidates": rows, "why": why,
-                              "tiles": len(tiles), "seconds": time.perf_counter() - t0}, params)
+                              "tiles": len(tiles), "seconds": time.perf_counter() - t0, **extra}, params)
 
 
 # ---------------------------------------------------- Method members

@@ -691,7 +691,10 @@ class AdaptiveRun:
             result = self.method.reconstruct(self.view, self.params)
         else:
             result = reconstructor(self)
-        result = consistency_guard(result, self.buffers, self.options.guard_z)
+        guard = self.options.guard_z
+        if self.selection is not None and "guard_z" in self.selection:  # the selecting method's choice
+            guard = float(self.selection["guard_z"])
+        result = consistency_guard(result, self.buffers, guard)
         self.timing.reconstruct += time.perf_counter() - t0
         return result
 

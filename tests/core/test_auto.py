@@ -256,3 +256,18 @@ def test_uniform_sampling_after_the_choice_renders_sample_subsets():
     np.testing.assert_array_equal(run.buffers.n, 12)
     assert [t.samples for t in ex.tasks] == [1, 1, 1, 1, 2, 2, 2, 2]
     assert [t.offset for t in ex.tasks] == [0, 1, 2, 3, 4, 6, 8, 10]
+
+
+def test_an_oidn_choice_runs_without_the_consistency_guard(monkeypatch):
+    from core import pipeline
+    seen = []
+    real = pipeline.consistency_guard
+    monkeypatch.setattr(pipeline, "consistency_guard", lambda res, buf, z: seen.append(z) or real(res, buf, z))
+    truth, feats = _scene(16, 16)
+    run = _run(FakeExecutor(truth, feats), spp=6, initial_spp=2, subsets=2, params={"candidates": "oidn"})
+    assert run.selection["chosen"] == "oidn-uniform" and run.selection["guard_z"] == 0.0
+    run.reconstruct()
+    assert seen == [0.0]
+    lp = _run(FakeExecutor(truth, feats), spp=6, initial_spp=2, subsets=2, params={"candidates": "awr"})
+    lp.reconstruct()
+    assert seen[-1] == Options().guard_z
