@@ -531,13 +531,20 @@ def planned_tasks(extra, iterations: int, min_size: int, task_cost: float) -> in
     return it * max(1, len(plan.tasks))
 
 
+def render_seconds(ctx: Context) -> tuple:
+    """(seconds per pixel-sample, predicted seconds of plain Cycles at the
+    budget) from the initial pass: its renders' time over their samples plus
+    one task cost (``Options.task_cost`` pixel-samples) per render."""
+    t_ps = ctx.render_seconds / max(ctx.initial_spp * ctx.pixels + ctx.tasks * ctx.task_cost, 1.0)
+    return t_ps, t_ps * ctx.spp * ctx.pixels
+
+
 def predict(scores: dict, ctx: Context, rel_var, params: Params, costs: dict) -> list:
     """Every candidate's predicted relMSE, seconds and speed-up at the budget
     (module notes); sorted best first.  ``costs``: :func:`reconstruction_costs`."""
     n_half = ctx.initial_spp / 2.0
     beta = max(float(ctx.exponent), 0.5)
-    t_ps = ctx.render_seconds / max(ctx.initial_spp * ctx.pixels + ctx.tasks * ctx.task_cost, 1.0)
-    t_plain = t_ps * ctx.spp * ctx.pixels
+    t_ps, t_plain = render_seconds(ctx)
     e_mean = scores["mean"]["relmse_half"] * (n_half / ctx.spp) ** beta
     samplings = ("uniform", "adaptive") if params.sampling == "auto" else (params.sampling,)
     rows = []
@@ -594,7 +601,7 @@ def select(crops: list, subset_data: list, ctx: Context, rel_var, params: Params
                                     f"sample subsets; cross-validation needs 4 (--subsets 4): "
                                     f"{m.NAME} by default"}, params)
     t0 = time.perf_counter()
-    t_plain = ctx.render_seconds / max(ctx.initial_spp, 1e-9) * ctx.spp
+    t_plain = render_seconds(ctx)[1]
     tiles = []
     for crop, subs in zip(crops, subset_data):
         tiles.append(score_tile(subs, crop, height, width, names, ctx.exponent))

@@ -266,6 +266,7 @@ class AdaptiveRun:
         self.dropped: tuple = ()            # feature passes found to carry no information
         self._cv: list = []                 # initial subsets on a selecting method's tiles
         self._initial_seconds: list = []    # render seconds of each initial subset
+        self._last_render_seconds = 0.0     # the latest task's render (_count_render)
         self.target_met = False             # Options.target_error reached
         self.estimates: list = []           # (spp, estimated relMSE) at each target check
         self._result = None                 # (samples, MethodResult) of the last target check
@@ -418,9 +419,8 @@ class AdaptiveRun:
         for s, task in enumerate(tasks):
             if s and self._time_up():  # one subset at least, so there is an image
                 break
-            t0 = time.perf_counter()
             color, feats = self._render_task(task)
-            self._initial_seconds.append(time.perf_counter() - t0)
+            self._initial_seconds.append(self._last_render_seconds)
             meter.add(color, task.samples)
             for keep, (x0, y0, x1, y1) in zip(self._cv, crops):
                 keep.append((np.array(np.asarray(color)[y0:y1, x0:x1, :3], np.float64),
@@ -568,6 +568,7 @@ class AdaptiveRun:
         return color, feats
 
     def _count_render(self, seconds: float) -> None:
+        self._last_render_seconds = seconds
         self.timing.render += seconds
         self.max_task_seconds = max(self.max_task_seconds, seconds)
 
