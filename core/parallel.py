@@ -1,0 +1,143 @@
+"""Controller threads: independent pieces of numpy work on one shared pool.
+
+The controller's own work between renders (merging tiles, sample maps,
+reconstructions, the consistency guard) is numpy on arrays of megapixels,
+and numpy releases the GIL inside its loops, so threads over disjoint row
+bands use the controller's cores.  Two rules keep results identical whatever
+the thread count:
+
+* work is cut by :func:`bands` into pieces that depend on the data's shape
+  only, never on :func:`threads`;
+* results come back in piece order (:func:`map_ordered`), and any reduction
+  over pieces is done by the caller in that order.
+
+So ``threads() == 1`` and ``threads() == 16`` give bit-identical output (the
+tests compare them), and a checkpoint resumed on another machine continues
+exactly.  The thread count is ``$CYCLES_ADAPTIVE_THREADS`` when set (a
+positive integer), else :func:`set_threads`'s value, else the machine's CPU
+count; below ``min_items`` pieces or ``min_work`` elements the work runs
+inline, since small arrays gain nothing from threads.
+"""
+from __future__ import annotations
+
+import os
+import threading
+from collections import deque
+from concurrent.futures import ThreadPoolExecutor
+
+ENV = "CYCLES_ADAPTIVE_THREADS"
+
+_LOCK = threading.Lock()
+_POOL: ThreadPoolExecutor | None = None
+_POOL_SIZE = 0
+_SET: int | None = None
+_LOCAL = threading.local()  # marks the pool's own threads (no nested pools)
+
+
+def threads() -> int:
+    """Threads the controller uses: ``$CYCLES_ADAPTIVE_THREADS``, else
+    :func:`set_threads`'s value, else ``os.cpu_count()``; at least 1.  An
+    unparsable or non-positive environment value is ignored."""
+    env = os.environ.get(ENV, "").strip()
+    if env:
+        try:
+            n = int(env)
+        except ValueError:
+            n = 0
+        if n > 0:
+            return n
+    if _SET is not None:
+        return _SET
+    return max(1, os.cpu_count() or 1)
+
+
+def set_threads(n: int | None) -> None:
+    """Set the thread count (None: back to the CPU count).  ``n < 1`` is an
+    error: a ValueError, not a silent single thread."""
+    global _SET
+    if n is not None:
+        n = int(n)
+        if n < 1:
+            raise ValueError(f"threads must be at least 1, got {n}")
+    _SET = n
+
+
+def bands(height: int, rows: int = 64) -> list:
+    """``[(y0, y1), ...]``: ``height`` rows cut into bands of ``rows`` rows
+    (the last one shorter); depends only on its arguments, so a reduction over
+    bands in this order is the same for any thread count."""
+    height, rows = int(height), max(1, int(rows))
+    return [(y0, min(y0 + rows, height)) for y0 in range(0, max(height, 0), rows)]
+
+
+def _pool(n: int) -> ThreadPoolExecutor:
+    global _POOL, _POOL_SIZE
+    with _LOCK:
+        if _POOL is None or _POOL_SIZE != n:
+            if _POOL is not None:
+                _POOL.shutdown(wait=False)
+            _POOL = ThreadPoolExecutor(n, thread_name_prefix="cycles-adaptive",
+                                       initializer=_mark_pool_thread)
+            _POOL_SIZE = n
+        return _POOL
+
+
+def _mark_pool_thread() -> None:
+    _LOCAL.in_pool = True
+
+
+def in_pool() -> bool:
+    """True on one of the pool's threads (nested calls then run inline, so a
+    piece that itself maps pieces cannot deadlock the pool)."""
+    return bool(getattr(_LOCAL, "in_pool", False))
+
+
+def map_ordered(fn, items, min_items: int = 2, ahead: int | None = None):
+    """``[fn(item) for item in items]``, computed on the pool, in order.
+
+    Inline (no pool) with one thread, fewer than ``min_items`` items, or on a
+    pool thread.  At most ``ahead`` items (default ``2 * threads()``) are
+    in flight (submitted and not yet consumed), so memory stays bounded for long item
+    lists.  The first exception raised by ``fn`` propagates after the pieces
+    already submitted have finished (none is left running)."""
+    items = list(items)
+    n = threads()
+    if n <= 1 or len(items) < max(2, int(min_items)) or in_pool():
+        return [fn(item) for item in items]
+    pool = _pool(n)
+    ahead = max(1, int(ahead) if ahead else 2 * n)
+    out = []
+    pending = deque()
+    it = iter(items)
+    try:
+        for item in it:
+            pending.append(pool.submit(fn, item))
+            if len(pending) >= ahead:
+                break
+        while pending:
+            out.append(pending.popleft().result())
+            nxt = next(it, _END)
+            if nxt is not _END:
+                pending.append(pool.submit(fn, nxt))
+    finally:
+        for fut in pending:  # an exception: wait for what was submitted
+            fut.cancel()
+        for fut in pending:
+            if not fut.cancelled():
+                try:
+                    fut.result()
+                except Exception:
+                    pass
+    return out
+
+
+_END = object()
+
+
+def run_bands(fn, height: int, rows: int = 64, min_work: int = 0, work_per_row: int = 1) -> list:
+    """``map_ordered(fn, bands(height, rows))``: ``fn((y0, y1))`` per band, in
+    band order; inline when ``height * work_per_row < min_work``."""
+    pieces = bands(height, rows)
+    if height * max(1, int(work_per_row)) < int(min_work):
+        return [fn(b) for b in pieces]
+    return map_ordered(fn, pieces)

@@ -1,0 +1,117 @@
+"""core.parallel: order, bounded submission, errors, thread-count settings."""
+import threading
+import time
+
+import numpy as np
+import pytest
+
+from cycles_adaptive.core import parallel
+
+
+@pytest.fixture(autouse=True)
+def _reset(monkeypatch):
+    monkeypatch.delenv(parallel.ENV, raising=False)
+    yield
+    parallel.set_threads(None)
+
+
+def test_bands_cover_rows_once_and_ignore_thread_count():
+    for h, r in [(0, 8), (1, 8), (64, 64), (65, 64), (1000, 7)]:
+        b = parallel.bands(h, r)
+        rows = [y for y0, y1 in b for y in range(y0, y1)]
+        assert rows == list(range(h))
+        assert all(0 < y1 - y0 <= r for y0, y1 in b)
+    parallel.set_threads(1)
+    one = parallel.bands(300, 64)
+    parallel.set_threads(7)
+    assert parallel.bands(300, 64) == one
+
+
+def test_map_ordered_keeps_order_and_uses_threads():
+    parallel.set_threads(4)
+    seen = set()
+
+    def fn(i):
+        seen.add(threading.current_thread().name)
+        time.sleep(0.002 * (10 - i % 10))  # later items finish first
+        return i * i
+
+    assert parallel.map_ordered(fn, range(40)) == [i * i for i in range(40)]
+    assert any(name.startswith("cycles-adaptive") for name in seen)
+
+
+def test_map_ordered_bounds_what_is_submitted_ahead():
+    parallel.set_threads(3)
+    lock = threading.Lock()
+    state = {"running": 0, "peak": 0, "consumed": 0}
+
+    def fn(i):
+        with lock:
+            state["running"] += 1
+            state["peak"] = max(state["peak"], state["running"])
+        time.sleep(0.001)
+        with lock:
+            state["running"] -= 1
+        return i
+
+    assert parallel.map_ordered(fn, range(50), ahead=2) == list(range(50))
+    assert state["peak"] <= 2
+
+
+def test_single_thread_and_nested_calls_run_inline():
+    parallel.set_threads(1)
+    names = parallel.map_ordered(lambda i: threading.current_thread().name, range(5))
+    assert set(names) == {threading.current_thread().name}
+    parallel.set_threads(3)
+    inner = parallel.map_ordered(lambda i: parallel.map_ordered(lambda j: (i, j, parallel.in_pool()), range(3)),
+                                 range(4))
+    assert [[(i, j) for i, j, _ in row] for row in inner] == [[(i, j) for j in range(3)] for i in range(4)]
+    assert all(flag for row in inner for _, _, flag in row)
+
+
+def test_first_error_propagates_and_nothing_is_left_running():
+    parallel.set_threads(4)
+    done = []
+
+    def fn(i):
+        if i == 5:
+            raise RuntimeError("piece 5")
+        time.sleep(0.005)
+        done.append(i)
+        return i
+
+    with pytest.raises(RuntimeError, match="piece 5"):
+        parallel.map_ordered(fn, range(30))
+    settled = len(done)
+    time.sleep(0.05)
+    assert len(done) == settled  # no piece still running after the raise
+
+
+def test_thread_count_settings(monkeypatch):
+    parallel.set_threads(3)
+    assert parallel.threads() == 3
+    monkeypatch.setenv(parallel.ENV, "5")
+    assert parallel.threads() == 5
+    monkeypatch.setenv(parallel.ENV, "zero")
+    assert parallel.threads() == 3
+    monkeypatch.setenv(parallel.ENV, "-2")
+    assert parallel.threads() == 3
+    with pytest.raises(ValueError):
+        parallel.set_threads(0)
+    parallel.set_threads(None)
+    monkeypatch.delenv(parallel.ENV)
+    assert parallel.threads() >= 1
+
+
+def test_band_reduction_is_identical_for_any_thread_count():
+    rng = np.random.default_rng(0)
+    x = rng.standard_normal((517, 33)) * 1e8
+    sums = []
+    for n in (1, 2, 5):
+        parallel.set_threads(n)
+        parts = parallel.run_bands(lambda b: x[b[0]:b[1]].sum(axis=0), x.shape[0], rows=16)
+        total = np.zeros(33)
+        for p in parts:
+            total += p
+        sums.append(total)
+    assert all(np.array_equal(sums[0], s) for s in sums[1:])
