@@ -38,13 +38,47 @@ PASS_SOURCES = {
     "glossy": (("GlossDir", "GlossInd"), ("use_pass_glossy_direct", "use_pass_glossy_indirect")),
     "transmission": (("TransDir", "TransInd"),
                      ("use_pass_transmission_direct", "use_pass_transmission_indirect")),
+    # passes a scene's compositor may read (addon/compositor.py), one Blender pass each;
+    # "cycles." enables live on the view layer's Cycles settings
+    "z": (("Depth",), "use_pass_z"),
+    "mist": (("Mist",), "use_pass_mist"),
+    "shading_normal": (("Normal",), "use_pass_normal"),
+    "uv": (("UV",), "use_pass_uv"),
+    "material_index": (("IndexMA",), "use_pass_material_index"),
+    "diffuse_direct": (("DiffDir",), "use_pass_diffuse_direct"),
+    "diffuse_indirect": (("DiffInd",), "use_pass_diffuse_indirect"),
+    "diffuse_color": (("DiffCol",), "use_pass_diffuse_color"),
+    "glossy_direct": (("GlossDir",), "use_pass_glossy_direct"),
+    "glossy_indirect": (("GlossInd",), "use_pass_glossy_indirect"),
+    "glossy_color": (("GlossCol",), "use_pass_glossy_color"),
+    "transmission_direct": (("TransDir",), "use_pass_transmission_direct"),
+    "transmission_indirect": (("TransInd",), "use_pass_transmission_indirect"),
+    "transmission_color": (("TransCol",), "use_pass_transmission_color"),
+    "volume_direct": (("VolumeDir",), "cycles.use_pass_volume_direct"),
+    "volume_indirect": (("VolumeInd",), "cycles.use_pass_volume_indirect"),
+    "emission": (("Emit",), "use_pass_emit"),
+    "environment": (("Env",), "use_pass_environment"),
+    "ambient_occlusion": (("AO",), "use_pass_ambient_occlusion"),
+    "shadow_catcher": (("Shadow Catcher",), "cycles.use_pass_shadow_catcher"),
+}
+
+
+#: Blender 5.0's names of passes (in its EXR files and Render Layers sockets)
+#: where they differ from 4.2-4.5's
+PASS_NAMES_5 = {
+    "IndexOB": "Object Index", "IndexMA": "Material Index",
+    "DiffDir": "Diffuse Direct", "DiffInd": "Diffuse Indirect", "DiffCol": "Diffuse Color",
+    "GlossDir": "Glossy Direct", "GlossInd": "Glossy Indirect", "GlossCol": "Glossy Color",
+    "TransDir": "Transmission Direct", "TransInd": "Transmission Indirect",
+    "TransCol": "Transmission Color", "VolumeDir": "Volume Direct", "VolumeInd": "Volume Indirect",
+    "Emit": "Emission", "Env": "Environment", "AO": "Ambient Occlusion",
 }
 
 
 #: passes Cycles writes only in the render that holds sample 0 (a render with
 #: sample_offset > 0 leaves them 0; checked with bpy 4.5): taken from that
 #: render alone, never averaged with later ones (core.pipeline.merge_render)
-SAMPLE_ZERO_PASSES = ("position", "object_index")
+SAMPLE_ZERO_PASSES = ("position", "object_index", "z", "material_index")
 
 
 @contextlib.contextmanager
@@ -268,7 +302,7 @@ class CyclesExecutor:
             if enable == "denoising":
                 continue
             for attr in (enable if isinstance(enable, tuple) else (enable,)):
-                g.set(vl, attr, True)
+                g.set(*_pass_switch(vl, attr), True)
 
     def _protect_render_result(self):
         protect_render_result(self.guard)
@@ -294,7 +328,7 @@ class CyclesExecutor:
                 if attr == "denoising":
                     self.guard.set(self.view_layer.cycles, "denoising_store_passes", False)
                 else:
-                    self.guard.set(self.view_layer, attr, False)
+                    self.guard.set(*_pass_switch(self.view_layer, attr), False)
 
     # ----------------------------------------------------------------- render
     def render(self, task):
@@ -325,7 +359,7 @@ class CyclesExecutor:
         for f in self.features:
             if f in SAMPLE_ZERO_PASSES and task.offset > 0:
                 continue  # not written by this render: the merge keeps the value of sample 0's
-            names = PASS_SOURCES[f][0]
+            names = [n if n in passes else PASS_NAMES_5.get(n, n) for n in PASS_SOURCES[f][0]]
             missing = [n for n in names if n not in passes]
             if missing:
                 raise SceneError(f"pass {missing[0]!r} missing from the render (have {sorted(passes)})")
@@ -358,6 +392,14 @@ class CyclesExecutor:
     def write_preview(self, rgba: np.ndarray, path: str) -> None:
         """PNG in the scene's view transform (Blender applies it on save)."""
         write_preview(self.scene, rgba, path)
+
+
+def _pass_switch(view_layer, attr: str) -> tuple:
+    """``(owner, name)`` of a pass's enable switch: ``"cycles.X"`` lives on
+    the view layer's Cycles settings, anything else on the view layer."""
+    if attr.startswith("cycles."):
+        return view_layer.cycles, attr[len("cycles."):]
+    return view_layer, attr
 
 
 def protect_render_result(guard: SettingsGuard) -> None:

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import contextlib
 import hashlib
+import json
 import os
 import tempfile
 
@@ -28,14 +29,24 @@ CHANNEL_LETTERS = {1: ("V",), 2: ("X", "Y"), 3: ("R", "G", "B"), 4: ("R", "G", "
 VECTOR_LETTERS = {3: ("X", "Y", "Z"), 4: ("X", "Y", "Z", "W")}
 
 
-def read_layers(path: str) -> tuple[dict, dict]:
-    """Read every channel of an EXR (or any OIIO-readable image).
+#: the file's layers in their intended order (EXR sorts channels by name)
+LAYERS_ATTRIBUTE = "cycles_adaptive/layers"
+#: the layer Blender (and our outputs) keep the composited image in
+COMPOSITE_LAYER = "Composite"
+
+
+def read_layers(path: str, layer: str | None = None) -> tuple[dict, dict]:
+    """Read the channels of one layer of an EXR (or any OIIO-readable image).
 
     Returns ``(passes, meta)``: ``passes`` maps pass name (view-layer prefix
     removed; ``""`` for un-prefixed channels) to an (H, W, C) float32 array with
     channels in file order; ``meta`` holds ``width``, ``height``, ``layer``
-    (the view-layer name, or ``""``), ``channels`` per pass and the file's
-    string attributes.
+    (the view-layer name, or ``""``), ``layers`` (every layer of the file, in
+    file order), ``channels`` per pass and the file's string attributes.
+    ``layer``: which layer (ImageFileError when absent); default the first
+    one as :func:`write_multilayer` ordered them (its ``LAYERS_ATTRIBUTE``;
+    EXR itself sorts channels by name), else the first other than Blender's
+    ``Composite``, so a file with several layers reads as one, never as a mix.
     """
     if not os.path.isfile(path):
         raise ImageFileError(f"{path}: no such file")
@@ -75,11 +86,20 @@ def read_layers(path: str) -> tuple[dict, dict]:
     pixels = np.stack(columns, axis=-1)
     spec_w, spec_h = size[1], size[0]
     groups: dict = {}
-    layer = ""
+    layers = list(dict.fromkeys(n.split(".")[0] for n in names if n.count(".") >= 2))
+    try:
+        order = [x for x in json.loads(attrs.get(LAYERS_ATTRIBUTE, "[]")) if x in layers]
+    except (ValueError, TypeError):
+        order = []
+    layers = order + sorted((x for x in layers if x not in order), key=lambda x: x == COMPOSITE_LAYER)
+    if layer is not None and layer not in layers:
+        raise ImageFileError(f"{path}: no layer {layer!r} (layers: {', '.join(layers) or 'none'})")
+    layer = layer if layer is not None else (layers[0] if layers else "")
     for i, name in enumerate(names):
         parts = name.split(".")
         if len(parts) >= 3:
-            layer = parts[0]
+            if parts[0] != layer:
+                continue
             pname, ch = ".".join(parts[1:-1]), parts[-1]
         elif len(parts) == 2:
             pname, ch = parts
@@ -87,7 +107,7 @@ def read_layers(path: str) -> tuple[dict, dict]:
             pname, ch = "", parts[0]
         groups.setdefault(pname, []).append((i, ch))
     passes = {k: pixels[:, :, [i for i, _ in v]] for k, v in groups.items()}
-    meta = {"width": spec_w, "height": spec_h, "layer": layer,
+    meta = {"width": spec_w, "height": spec_h, "layer": layer, "layers": layers,
             "channels": {k: [c for _, c in v] for k, v in groups.items()}, "attributes": attrs}
     return passes, meta
 
@@ -108,9 +128,17 @@ def write_layers(path: str, passes: dict, layer: str = "ViewLayer", attributes: 
     """Write a multilayer EXR atomically (temporary file in the same folder, then
     rename).  ``passes`` maps pass name to (H, W) or (H, W, C) arrays, or to
     ``(array, channel_letters)`` to choose channel names."""
+    write_multilayer(path, [(layer, passes)], attributes, half)
+
+
+def write_multilayer(path: str, layers, attributes: dict | None = None, half: bool = False) -> None:
+    """:func:`write_layers` for several layers: ``layers`` is a sequence of
+    ``(layer name, passes)``, written in that order (readers take the first
+    as the file's own, :func:`read_layers`).  All passes share one size."""
+    layers = list(layers)
     arrays, names = [], []
     shape = None
-    for pname, value in passes.items():
+    for layer, pname, value in [(ly, k, v) for ly, passes in layers for k, v in passes.items()]:
         arr, letters = value if isinstance(value, tuple) else (value, None)
         arr = np.asarray(arr, np.float32)
         if arr.ndim == 2:
@@ -123,6 +151,10 @@ def write_layers(path: str, passes: dict, layer: str = "ViewLayer", attributes: 
         for c, letter in enumerate(letters):
             names.append(f"{layer}.{pname}.{letter}" if layer else f"{pname}.{letter}")
             arrays.append(arr[:, :, c])
+    if len(set(names)) != len(names):
+        raise ValueError("two channels share a name (a layer given twice?)")
+    attributes = dict(attributes or {})
+    attributes[LAYERS_ATTRIBUTE] = json.dumps([name for name, _ in layers])
     data = np.ascontiguousarray(np.stack(arrays, axis=-1))
     spec = oiio.ImageSpec(shape[1], shape[0], len(names), "half" if half else "float")
     spec.channelnames = names

@@ -15,7 +15,11 @@ Outputs (written atomically; an existing file is never replaced unless
   squared error), ``NextIndex`` and ``Feat_<name>`` / ``Feat_<name>_M2`` for every
   feature pass: all that ``denoise`` needs to re-run any method later (every
   render keeps :func:`denoise_passes`, whatever its own method reads).
-- ``OUT.png``: preview in the scene's view transform.
+  When the scene composites its renders (``addon/compositor.py``), the
+  composited image follows as a second layer, ``Composite`` (pass
+  ``Combined``), and the passes the compositor reads are kept as features.
+- ``OUT.png``: preview in the scene's view transform (of the composited image
+  when there is one).
 - ``OUT.exr.checkpoint.npz`` after every iteration, removed after a complete
   run, kept after a cancel so ``--resume`` continues.  A job without ``out``
   (the API's) writes no checkpoint and nothing else.
@@ -236,12 +240,16 @@ class Output:
     layer: str
     attributes: dict
     summary: dict
+    extra_layers: list = dataclasses.field(default_factory=list)  # [(layer, passes)] after ours
+    composite: np.ndarray | None = None  # the compositor's (H, W, 4) image, when it ran
 
 
 def write_output(output: Output, path: str) -> None:
     """Write the multilayer EXR of ``output`` to ``path`` atomically
-    (:func:`core.io.write_layers`); the caller checked that it may."""
-    imageio.write_layers(path, output.passes, layer=output.layer, attributes=output.attributes)
+    (:func:`core.io.write_multilayer`: our layer first, then the others, e.g.
+    ``Composite``); the caller checked that it may."""
+    imageio.write_multilayer(path, [(output.layer, output.passes)] + list(output.extra_layers),
+                             attributes=output.attributes)
 
 
 #: the run's own estimate of its relMSE (for the panel's summary and the CLI's JSON)
@@ -252,6 +260,30 @@ def _info_fields(summary: dict, info: dict, prefix: str = "") -> None:
     for k, v in info.items():
         if isinstance(v, (int, float, str, bool)):
             summary[prefix + k] = v
+
+
+def composite_plan(scene, layers) -> tuple:
+    """``(plan, note)``: what the scene's compositor reads
+    (:func:`addon.compositor.plan`) when this job can feed it, with note
+    ``"pending"``; else ``(None, note)``, note ``"none"`` (the scene does not
+    composite) or ``"skipped: why"`` (a pass or view layer this job does
+    not render: the result is written raw)."""
+    from ..addon import compositor
+    try:
+        plan = compositor.plan(scene)
+    except compositor.CompositorError as exc:
+        return None, f"skipped: {exc}"
+    if plan is None:
+        return None, "none"
+    missing = [n for n in plan.layers if n not in layers]
+    if missing:
+        return None, (f"skipped: the compositor also reads view layer(s) {', '.join(map(repr, missing))}, "
+                      "which this render does not include (--view-layers all renders every one)")
+    return plan, "pending"
+
+
+def _array(value):
+    return value[0] if isinstance(value, tuple) else value
 
 
 class RenderJob:
@@ -266,7 +298,7 @@ class RenderJob:
     def __init__(self, scene, view_layer, options: Options, out: str | None, reference: str | None = None,
                  overwrite: bool = False, resume: bool = False, preview: bool = True,
                  keep_checkpoint: bool = False, method=None, prior=None, reconstructor=None,
-                 executor_factory=None, keep_denoise_passes: bool = True):
+                 executor_factory=None, keep_denoise_passes: bool = True, compositor: bool = True):
         """``out``: the output EXR, or None to write nothing (no checkpoint,
         no outputs: the API); ``method``: a :class:`core.method.Method` object
         (default: the registered ``options.method``); ``prior``: the run's
@@ -274,15 +306,22 @@ class RenderJob:
         ``reconstructor(run) -> MethodResult`` replaces the method's final
         reconstruction (LP's temporal extension); ``keep_denoise_passes``:
         also render :func:`denoise_passes` so ``denoise`` can re-run any
-        method on the output (False only to measure what they cost)."""
+        method on the output (False only to measure what they cost);
+        ``compositor``: run the scene's compositor on the result when a final
+        render of the scene would (``addon/compositor.py``); what it cannot
+        run on is said in the summary's ``compositor`` and the EXR stays raw."""
         from ..addon import executor as ex
         self.ex = ex
         ex.check_scene(scene, view_layer)
         self.scene, self.view_layer = scene, view_layer
         self.layer_name = view_layer.name  # output() may run off the main thread: no RNA access there
+        self.composite_plan, self.compositor_note = (composite_plan(scene, [view_layer.name])
+                                                     if compositor else (None, "off"))
+        extra = self.composite_plan.features(view_layer.name) if self.composite_plan else ()
         if keep_denoise_passes:
-            options = dataclasses.replace(
-                options, features=tuple(dict.fromkeys(tuple(options.features) + denoise_passes())))
+            extra = denoise_passes() + tuple(extra)
+        if extra:
+            options = dataclasses.replace(options, features=tuple(dict.fromkeys(tuple(options.features) + extra)))
         self.options = options
         self.out = os.path.abspath(bpy_path(out)) if out else None
         self.ckpt = checkpoint_path(self.out) if self.out else None
@@ -433,6 +472,7 @@ class RenderJob:
             attrs["cycles_adaptive/chosen"] = json.dumps(_jsonable(run.selection))
         if run.dropped:
             summary["dropped_passes"] = list(run.dropped)
+        summary["compositor"] = self.compositor_note
         if self.options.target_error > 0:  # the estimate at each check, and whether it got there
             summary.update(target_error=self.options.target_error, target_met=bool(run.target_met),
                            estimates=[{"spp": a, "estimated_relmse": b} for a, b in run.estimates])
@@ -478,16 +518,29 @@ class RenderJob:
         if self.out is None:  # the API's job: nothing to write
             return self.output(partial, reconstruct).summary
 
-        def compute_and_write():
-            out = self.output(partial, reconstruct)
+        composite = self.composite_plan is not None
+
+        def write(out):
             t = time.perf_counter()
             write_output(out, self.out)
             px = self._preview_pixels(out) if self.preview and threaded else None
             return out, px, time.perf_counter() - t
 
+        def compute_and_write():
+            out = self.output(partial, reconstruct)
+            return (out, None, 0.0) if composite else write(out)
+
         work = Work(compute_and_write, f"writing {self.out}")
         yield work  # output() reads no Blender data (the layer's name is kept from __init__)
         out, px, seconds = work.result()
+        if composite:  # bpy: the compositor runs here, then the EXR holds its image too
+            t = time.perf_counter()
+            self._run_compositor(out)
+            seconds += time.perf_counter() - t
+            work = Work(lambda: write(out), f"writing {self.out}")
+            yield work
+            out, px, more = work.result()
+            seconds += more
         if self.preview:
             t = time.perf_counter()
             png = preview_path(self.out)
@@ -503,8 +556,8 @@ class RenderJob:
                     if os.path.exists(tmp):
                         os.unlink(tmp)
             else:
-                combined = out.passes["Combined"]
-                self.ex.write_preview(self.scene, combined[0] if isinstance(combined, tuple) else combined, png)
+                shown = out.composite if out.composite is not None else _array(out.passes["Combined"])
+                self.ex.write_preview(self.scene, shown, png)
             seconds += time.perf_counter() - t
         self.run.timing.overhead += seconds
         if not partial and not self.keep_checkpoint and os.path.exists(self.ckpt):
@@ -513,15 +566,33 @@ class RenderJob:
         self._written = out.summary
         return out.summary
 
+    def _run_compositor(self, out: Output) -> None:
+        """The scene's compositor on ``out`` (main thread: bpy): sets
+        ``out.composite`` and the EXR's ``Composite`` layer, or says in the
+        summary why it was skipped (the EXR then stays raw)."""
+        from ..addon import compositor
+        names = self.composite_plan.features(self.layer_name)
+        try:
+            feats = {f: _array(out.passes[f"Feat_{f}"]) for f in names}
+            layers = {self.layer_name: compositor.layer_passes(_array(out.passes["Combined"]), feats, names)}
+            rgba = compositor.composite(self.scene, layers)
+        except (compositor.CompositorError, KeyError) as exc:
+            self.compositor_note = f"skipped: {exc}"
+        else:
+            out.composite = rgba
+            out.extra_layers = [(compositor.COMPOSITE_LAYER, {"Combined": rgba})]
+            self.compositor_note = "applied"
+        out.summary["compositor"] = self.compositor_note
+
     @staticmethod
     def _preview_pixels(out: Output) -> tuple:
-        """The Combined pass as the flat float32 RGBA buffer of a Blender
+        """The image shown (the composite when the compositor ran, else the
+        Combined pass) as the flat float32 RGBA buffer of a Blender
         image (rows bottom to top; non-finite values 0; alpha 1 where the pass
         has none) and its width and height, as
         :func:`addon.executor.write_preview` builds it: numpy only, so the
         writer thread prepares it."""
-        combined = out.passes["Combined"]
-        rgba = combined[0] if isinstance(combined, tuple) else combined
+        rgba = out.composite if out.composite is not None else _array(out.passes["Combined"])
         h, w = rgba.shape[:2]
         px = np.ones((h, w, 4), np.float32)
         px[:, :, :rgba.shape[2]] = np.nan_to_num(rgba[:, :, :4], nan=0.0, posinf=0.0, neginf=0.0)

@@ -55,3 +55,22 @@ def save_scene(path, **kw):
     scene = build_scene(**kw)
     bpy.ops.wm.save_as_mainfile(filepath=str(path), compress=True)
     return scene
+
+
+def compositor_tree(scene):
+    """A fresh compositor node tree for ``scene`` (compositing on) and its
+    output node: the Composite node in 4.2-4.5, the node group's Group Output
+    (one "Image" socket) in 5.0, where the tree is a data-block of its own."""
+    scene.render.use_compositing = True
+    if hasattr(scene, "compositing_node_group"):
+        tree = bpy.data.node_groups.new("Compositing", "CompositorNodeTree")
+        tree.interface.new_socket("Image", in_out="OUTPUT", socket_type="NodeSocketColor")
+        scene.compositing_node_group = tree
+        out = tree.nodes.new("NodeGroupOutput")
+    else:
+        scene.use_nodes = True
+        tree = scene.node_tree
+        for node in list(tree.nodes):
+            tree.nodes.remove(node)
+        out = tree.nodes.new("CompositorNodeComposite")
+    return tree, out

@@ -68,3 +68,38 @@ def test_written_files_get_ordinary_permissions(tmp_path):
     umask = os.umask(0)
     os.umask(umask)
     assert os.stat(path).st_mode & 0o777 == 0o666 & ~umask
+
+
+def test_several_layers_read_one_at_a_time_in_the_written_order(tmp_path):
+    path = str(tmp_path / "layers.exr")
+    h, w = 3, 4
+    a = np.full((h, w, 4), 1.0)
+    b = np.full((h, w, 4), 2.0)
+    c = np.full((h, w, 4), 3.0)
+    imageio.write_multilayer(path, [("Zebra", {"Combined": a, "Depth": np.ones((h, w))}),
+                               ("Apple", {"Combined": b}), ("Composite", {"Combined": c})])
+    passes, meta = imageio.read_layers(path)
+    assert meta["layers"] == ["Zebra", "Apple", "Composite"]  # not EXR's sorted channel order
+    assert meta["layer"] == "Zebra" and sorted(passes) == ["Combined", "Depth"]
+    assert np.all(passes["Combined"] == 1.0)
+    passes, meta = imageio.read_layers(path, "Apple")
+    assert sorted(passes) == ["Combined"] and np.all(passes["Combined"] == 2.0)
+    with pytest.raises(imageio.ImageFileError, match="no layer 'Nope'"):
+        imageio.read_layers(path, "Nope")
+    with pytest.raises(ValueError, match="share a name"):
+        imageio.write_multilayer(str(tmp_path / "twice.exr"), [("L", {"Combined": a}), ("L", {"Combined": b})])
+
+
+def test_a_file_without_our_order_reads_its_first_layer_other_than_composite(tmp_path):
+    import OpenImageIO as oiio
+    path = str(tmp_path / "blender.exr")
+    spec = oiio.ImageSpec(2, 2, 2, oiio.FLOAT)
+    spec.channelnames = ("Composite.Combined.R", "ViewLayer.Combined.R")
+    px = np.zeros((2, 2, 2), np.float32)
+    px[..., 1] = 5.0
+    out = oiio.ImageOutput.create(path)
+    out.open(path, spec)
+    out.write_image(px)
+    out.close()
+    passes, meta = imageio.read_layers(path)
+    assert meta["layer"] == "ViewLayer" and np.all(passes["Combined"] == 5.0)

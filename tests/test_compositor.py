@@ -1,0 +1,100 @@
+"""The scene's compositor on the adaptive result (addon/compositor.py): the
+composited image equals the compositor applied to our passes, the raw result
+stays in the EXR, the user's scene is untouched, and what cannot be fed is
+said, not faked."""
+import os
+
+import numpy as np
+import pytest
+
+bpy = pytest.importorskip("bpy")
+
+from blend_util import build_scene, compositor_tree  # noqa: E402
+
+from cycles_adaptive.core import io as imageio  # noqa: E402
+from cycles_adaptive.core.pipeline import Options  # noqa: E402
+from cycles_adaptive.operators.job import RenderJob  # noqa: E402
+
+
+def _job(scene, tmp_path, name="out.exr", **kw):
+    opts = Options(method="var", spp=4, initial_spp=2, subsets=2, iterations=1, seed=1)
+    job = RenderJob(scene, bpy.context.view_layer, opts, str(tmp_path / name), **kw)
+    for _ in job.steps():
+        pass
+    return job, job.finish()
+
+
+def _nodes(tree):
+    return sorted((n.bl_idname, n.name) for n in tree.nodes), \
+        sorted((lk.from_node.name, lk.from_socket.name, lk.to_node.name, lk.to_socket.name) for lk in tree.links)
+
+
+def test_the_composite_is_the_compositor_applied_to_the_result(tmp_path):
+    scene = build_scene(24, 16)
+    tree, out = compositor_tree(scene)
+    rl = tree.nodes.new("CompositorNodeRLayers")
+    inv = tree.nodes.new("CompositorNodeInvert")
+    tree.links.new(rl.outputs["Image"], inv.inputs["Color"])
+    tree.links.new(inv.outputs["Color"], out.inputs[0])
+    before = _nodes(tree)
+    scenes = len(bpy.data.scenes)
+    job, summary = _job(scene, tmp_path)
+    assert summary["compositor"] == "applied"
+    raw, meta = imageio.read_layers(summary["out"])
+    assert meta["layers"] == ["ViewLayer", "Composite"]
+    comp, _ = imageio.read_layers(summary["out"], "Composite")
+    result = raw["Combined"][..., :3]
+    assert np.ptp(result) > 0.05  # a real image, not a constant
+    np.testing.assert_allclose(comp["Combined"][..., :3], 1.0 - result, atol=1e-5)
+    assert os.path.isfile(summary["preview"])
+    # the user's scene is as it was: no extra scene, the same nodes and links
+    assert len(bpy.data.scenes) == scenes
+    assert _nodes(tree) == before
+    assert not any(img.name.startswith("cycles_adaptive") for img in bpy.data.images)
+
+
+def test_passes_the_compositor_reads_are_rendered_and_fed(tmp_path):
+    scene = build_scene(24, 16)
+    vl = bpy.context.view_layer
+    assert not vl.use_pass_diffuse_color
+    tree, out = compositor_tree(scene)
+    rl = tree.nodes.new("CompositorNodeRLayers")
+    vl.use_pass_diffuse_color = True  # the socket shows once the pass is on, as in the UI
+    tree.links.new(rl.outputs.get("DiffCol") or rl.outputs["Diffuse Color"], out.inputs[0])
+    vl.use_pass_diffuse_color = False  # the link stays; the adaptive render turns the pass on itself
+    job, summary = _job(scene, tmp_path)
+    assert summary["compositor"] == "applied"
+    raw, _ = imageio.read_layers(summary["out"])
+    comp, _ = imageio.read_layers(summary["out"], "Composite")
+    col = raw["Feat_diffuse_color"]
+    assert col.max() > 0.1
+    np.testing.assert_allclose(comp["Combined"][..., :3], col, atol=1e-6)
+    assert not vl.use_pass_diffuse_color  # restored
+
+
+def test_what_cannot_be_fed_is_said_and_the_result_stays_raw(tmp_path):
+    scene = build_scene(24, 16)
+    vl = bpy.context.view_layer
+    vl.use_pass_cryptomatte_object = True
+    tree, out = compositor_tree(scene)
+    rl = tree.nodes.new("CompositorNodeRLayers")
+    crypto = next(o for o in rl.outputs if o.name.startswith("CryptoObject"))
+    tree.links.new(crypto, out.inputs[0])
+    job, summary = _job(scene, tmp_path)
+    assert summary["compositor"].startswith("skipped:") and "CryptoObject" in summary["compositor"]
+    _, meta = imageio.read_layers(summary["out"])
+    assert meta["layers"] == ["ViewLayer"]
+
+
+def test_no_compositor_and_compositor_off(tmp_path):
+    scene = build_scene(24, 16)
+    _, summary = _job(scene, tmp_path, "a.exr")
+    assert summary["compositor"] == "none"
+    tree, out = compositor_tree(scene)
+    rl = tree.nodes.new("CompositorNodeRLayers")
+    tree.links.new(rl.outputs["Image"], out.inputs[0])
+    _, summary = _job(scene, tmp_path, "b.exr", compositor=False)
+    assert summary["compositor"] == "off"
+    scene.render.use_compositing = False
+    _, summary = _job(scene, tmp_path, "c.exr")
+    assert summary["compositor"] == "none"
