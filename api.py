@@ -37,8 +37,8 @@ from .core.storage import StorageError
 __all__ = ["DEFAULT_METHOD", "Error", "Result", "Comparison", "render", "open_blend", "denoise", "compare",
            "write_png", "diff_picture"]
 
-#: the method ``render`` uses by default: the loop's own default (``Options``).
-#: There is no automatic choice ("auto") yet; pass a method name to choose.
+#: the method ``render`` uses by default: the loop's own default (``Options``),
+#: ``auto`` (chooses the reconstruction and sampling per scene, core/auto.py).
 DEFAULT_METHOD = Options().method
 
 #: channel names of the image a Result (or one of our EXRs) is compared by
@@ -200,9 +200,9 @@ def render(scene_or_path=None, method: str = DEFAULT_METHOD, spp: float = 16, fr
         **replaces the file open in this process** (unsaved changes in memory
         are gone; nothing is ever saved to any .blend) and renders its active
         scene.
-    method : ``uniform``, ``var``, ``awr``, ``lp`` or ``rhf``; default the
-        loop's default (:data:`DEFAULT_METHOD`, ``lp``).  No automatic choice
-        ("auto") exists yet.
+    method : ``auto``, ``uniform``, ``var``, ``awr``, ``lp``, ``rhf`` or
+        ``oidn``; default the loop's default (:data:`DEFAULT_METHOD`,
+        ``auto``: the candidate it predicts fastest at equal error).
     spp : mean samples per pixel of the whole run (initial pass included).
     frame : frame to render (default: the scene's current frame).
     view_layer : a view layer or its name (default: the active one).
