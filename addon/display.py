@@ -8,6 +8,7 @@ import numpy as np
 from ..core.buffers import LUMA
 
 RESULT, SAMPLES, ERROR = "Cycles Adaptive Result", "Cycles Adaptive Samples", "Cycles Adaptive Error"
+COMPOSITE = "Cycles Adaptive Composite"
 
 
 def set_float_image(name: str, rgba: np.ndarray):
@@ -31,14 +32,17 @@ def set_float_image(name: str, rgba: np.ndarray):
     return img
 
 
-def show_result(image: np.ndarray, samples: np.ndarray, error: np.ndarray, alpha=None):
-    """Put the three images in bpy.data and point Image Editors at the result.
+def show_result(image: np.ndarray, samples: np.ndarray, error: np.ndarray, alpha=None, composite=None):
+    """Put the three images in bpy.data (four with the compositor's image)
+    and point Image Editors at the result (the composite when there is one).
 
     The sample map is shown divided by its maximum and the error map as the
     relative error sqrt(err) / (luminance + 0.01), scaled to its 99th percentile.
     """
     rgba = image if alpha is None else np.concatenate([image, alpha], axis=-1)
     res = set_float_image(RESULT, rgba)
+    if composite is not None:
+        res = set_float_image(COMPOSITE, composite)
     smax = max(float(np.max(samples)), 1.0)
     set_float_image(SAMPLES, (samples / smax)[:, :, None])
     lum = image @ LUMA

@@ -201,7 +201,10 @@ def render_still(scene, view_layer, path: str, what: str = "") -> dict:
         bpy.ops.render.render(write_still=True, scene=scene.name, layer=view_layer.name)
     if not os.path.isfile(path):
         raise SceneError("Cycles wrote no image" + (f" {what}" if what else ""))
-    passes, _ = imageio.read_layers(path)
+    # the file holds every view layer of the scene (the others empty): read ours
+    passes, meta = imageio.read_layers(path)
+    if meta["layers"] and meta["layer"] != view_layer.name and view_layer.name in meta["layers"]:
+        passes, _ = imageio.read_layers(path, view_layer.name)
     os.unlink(path)
     return passes
 
@@ -264,6 +267,12 @@ class CyclesExecutor:
         g.set(r, "use_sequencer", False)
         g.set(r, "use_persistent_data", True)
         g.set(r, "use_single_layer", True)
+        # and the other view layers off: Blender 5.0 fails to write the second
+        # single-layer render of a file with several layers ("Error writing
+        # render result"; checked with 5.0.1), not when only one is enabled
+        for other in s.view_layers:
+            if other != vl and other.use:
+                g.set(other, "use", False)
         g.set(r, "use_border", True)
         g.set(r, "use_crop_to_border", True)
         for attr in ("border_min_x", "border_max_x", "border_min_y", "border_max_y"):

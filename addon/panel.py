@@ -99,6 +99,8 @@ class CYCLESADAPTIVE_PT_panel(_RenderPanel, bpy.types.Panel):
         if s.frame_range:
             col.prop(s, "temporal")
         col.prop(s, "overwrite")
+        col.prop(s, "use_compositor")
+        _draw_view_layers(layout, scene)
         if s.running:
             if hasattr(layout, "progress"):
                 layout.progress(factor=s.progress, text=s.status or "Rendering...")
@@ -115,6 +117,20 @@ class CYCLESADAPTIVE_PT_panel(_RenderPanel, bpy.types.Panel):
                 box.label(text=line)
         if s.status:
             layout.label(text=s.status)
+
+
+def _draw_view_layers(layout, scene) -> None:
+    """The view layers a render covers, with Blender's own Use for Rendering
+    switches (an adaptive render covers what F12 would)."""
+    if len(scene.view_layers) < 2:
+        return
+    box = layout.box()
+    if scene.render.use_single_layer:
+        box.label(text="View Layers: the active one (Render Single Layer is on)", icon="RENDERLAYERS")
+        return
+    box.label(text="View Layers (one EXR layer each)", icon="RENDERLAYERS")
+    for vl in scene.view_layers:
+        box.prop(vl, "use", text=vl.name)
 
 
 class CYCLESADAPTIVE_PT_advanced(_RenderPanel, bpy.types.Panel):

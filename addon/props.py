@@ -127,6 +127,9 @@ class CYCLESADAPTIVE_PG_settings(bpy.types.PropertyGroup):
                            description="How frames of a range reuse earlier samples")
     overwrite: BoolProperty(name="Overwrite", default=False,
                             description="Replace an existing output file")
+    use_compositor: BoolProperty(name="Compositor", default=True,
+                                 description="Run the scene's compositor on the result when the scene "
+                                             "composites its renders (the raw passes stay in the EXR)")
     use_scene_samples: BoolProperty(name="Use Scene Samples", default=False,
                                     description="Take the budget (mean samples per pixel) from Cycles' "
                                                 "Render Max Samples instead of Samples per Pixel below")

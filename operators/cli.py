@@ -105,7 +105,12 @@ def build_parser(blender_command: bool = False, extra_commands=()) -> argparse.A
                         "reprojection is valid (Schalk 2018); 'lp' adds LP's temporal regression "
                         "over frames (Moon 2015 Sec. 6, with --method lp)")
     r.add_argument("--scene", help="scene name (default: the active scene)")
-    r.add_argument("--view-layer", help="view layer name (default: the active view layer)")
+    r.add_argument("--view-layer", help="render this one view layer")
+    r.add_argument("--view-layers", metavar="all|A,B", help="render these view layers, one EXR layer each "
+                   "(default: as Blender renders the file: every layer enabled for rendering, or the "
+                   "active one with Render Single Layer on)")
+    r.add_argument("--no-compositor", action="store_true", help="do not run the scene's compositor on the "
+                   "result (by default it runs when the scene composites its renders)")
     r.add_argument("--overwrite", action="store_true", help="replace existing output files")
     r.add_argument("--resume", action="store_true", help="continue from OUT.exr.checkpoint.npz")
     r.add_argument("--no-preview", action="store_true", help="do not write the PNG preview")
@@ -217,12 +222,16 @@ def ensure_output_folder(path: str) -> str:
 
 def cmd_render(args, blender_command=False) -> int:
     import bpy
-    from .job import RenderJob, check_resolution_percentage, open_blend, resolve_scene
+    from .job import RenderJob, check_resolution_percentage, open_blend, resolve_scene, resolve_view_layers
     if args.blend:
         open_blend(args.blend)
     elif not bpy.data.filepath and not blender_command:
         raise UserError("no .blend file given")
     scene, vl = resolve_scene(args.scene, args.view_layer)
+    if args.view_layer and args.view_layers:
+        raise UserError("give --view-layer or --view-layers, not both")
+    layers = [vl] if args.view_layer else resolve_view_layers(scene, args.view_layers, vl)
+    vl = layers[0]
     if args.resolution_percentage is not None:
         scene.render.resolution_percentage = check_resolution_percentage(args.resolution_percentage)
     frame = scene.frame_current if args.frame is None else args.frame
@@ -232,21 +241,23 @@ def cmd_render(args, blender_command=False) -> int:
         raise UserError("--skip-existing needs --frames")
     with farm.open_farm(args, log=_log(args)) as cluster:
         if args.frames:
-            return _render_frames(args, scene, vl, opts, cluster)
-        return _render_frame(args, scene, vl, opts, cluster)
+            return _render_frames(args, scene, layers, opts, cluster)
+        return _render_frame(args, scene, layers, opts, cluster)
 
 
 def _log(args):
     return (lambda *a: None) if args.quiet else (lambda msg: print(f"[cycles-adaptive] {msg}", flush=True))
 
 
-def _render_frame(args, scene, vl, opts, cluster) -> int:
+def _render_frame(args, scene, layers, opts, cluster) -> int:
     from . import farm
-    from .job import RenderJob
+    from .job import LayersJob, RenderJob
     out = args.out or ensure_output_folder(default_out(scene, args.method, opts.frame))
-    job = RenderJob(scene, vl, opts, out, reference=args.reference, overwrite=args.overwrite,
-                    resume=args.resume, preview=not args.no_preview,
-                    executor_factory=farm.executor_for(cluster, out))
+    kw = dict(reference=args.reference, overwrite=args.overwrite, resume=args.resume,
+              preview=not args.no_preview, executor_factory=farm.executor_for(cluster, out),
+              compositor=not args.no_compositor)
+    job = (RenderJob(scene, layers[0], opts, out, **kw) if len(layers) == 1 else
+           LayersJob(scene, layers, opts, out, **kw))
     last = 0.0
     steps = job.steps()
     with _SigintFlag() as flag:
@@ -314,7 +325,7 @@ class _SigintFlag:
         return False
 
 
-def _render_frames(args, scene, vl, opts, cluster=None) -> int:
+def _render_frames(args, scene, layers, opts, cluster=None) -> int:
     from . import farm, farm_job
     from .job import FramesJob, frame_path, parse_frames
     if args.frame is not None:
@@ -325,11 +336,16 @@ def _render_frames(args, scene, vl, opts, cluster=None) -> int:
                   reproject_params=method_params(args, "reproject"),
                   temporal_params=method_params(args, "temporal"), preview=not args.no_preview)
     flags = dict(skip_existing=args.skip_existing, resume=args.resume, overwrite=args.overwrite)
+    vl = layers[0]
     if cluster is not None:
+        if len(layers) > 1 or args.no_compositor:
+            raise UserError("frame ranges on a Dask farm render one view layer with the compositor: "
+                            "choose the layer with --view-layer")
         job = farm.FarmFramesJob(cluster, scene, vl, opts, out, frames, **common, **flags)
     else:
         def make(fr, resume):
-            return FramesJob(scene, vl, opts, out, fr, overwrite=args.overwrite, resume=resume, **common)
+            return FramesJob(scene, vl, opts, out, fr, overwrite=args.overwrite, resume=resume,
+                             view_layers=layers, compositor=not args.no_compositor, **common)
         job = farm_job.FrameRangeJob(make, frames, lambda f: frame_path(out, f), args.temporal,
                                      method=opts.method, **flags)
     interrupted = False

@@ -64,8 +64,11 @@ def frame_state(out: str) -> str:
     ``RenderJob.finish`` writes the EXR, then the preview, then removes the
     checkpoint, each step atomic: a frame is complete only once its checkpoint
     is gone, so a node killed at any point leaves "checkpointed" or "missing".
+    A render of several view layers checkpoints each layer
+    (``OUT.<layer>.checkpoint.npz``, ``job.layer_checkpoint_path``).
     """
-    if os.path.exists(out + ".checkpoint.npz"):
+    import glob
+    if os.path.exists(out + ".checkpoint.npz") or glob.glob(glob.escape(out) + ".*.checkpoint.npz"):
         return "checkpointed"
     return "done" if os.path.exists(out) else "missing"
 

@@ -203,6 +203,31 @@ def resolve_scene(scene_name: str | None = None, view_layer_name: str | None = N
     return scene, resolve_view_layer(scene, view_layer_name)
 
 
+def resolve_view_layers(scene, spec: str | None = None, active=None) -> list:
+    """The view layers a render of ``scene`` covers: ``spec`` ``"all"`` (every
+    layer enabled for rendering), ``"A,B"`` (those, in that order), or None:
+    as Blender's own render does, every enabled layer, or only the active
+    one (``active``, default :func:`resolve_view_layer`) when the scene's
+    Render Single Layer is on.  JobError for unknown or disabled names."""
+    if spec is None:
+        if scene.render.use_single_layer:
+            return [active or resolve_view_layer(scene)]
+        spec = "all"
+    if spec.strip() == "all":
+        layers = [vl for vl in scene.view_layers if vl.use]
+        if not layers:
+            raise JobError(f"scene {scene.name!r} has no view layer enabled for rendering")
+        return layers
+    names = [n.strip() for n in spec.split(",") if n.strip()]
+    if not names or len(set(names)) != len(names):
+        raise JobError(f"--view-layers {spec!r}: expected all or distinct names separated by commas")
+    layers = [resolve_view_layer(scene, n) for n in names]
+    off = [vl.name for vl in layers if not vl.use]
+    if off:
+        raise JobError(f"view layer {off[0]!r} is disabled for rendering (Use for Rendering is off)")
+    return layers
+
+
 def resolve_view_layer(scene, name: str | None = None):
     """The view layer ``name`` of ``scene`` (default: the active one when the
     scene is the active scene, else its first)."""
@@ -298,7 +323,8 @@ class RenderJob:
     def __init__(self, scene, view_layer, options: Options, out: str | None, reference: str | None = None,
                  overwrite: bool = False, resume: bool = False, preview: bool = True,
                  keep_checkpoint: bool = False, method=None, prior=None, reconstructor=None,
-                 executor_factory=None, keep_denoise_passes: bool = True, compositor: bool = True):
+                 executor_factory=None, keep_denoise_passes: bool = True, compositor: bool = True,
+                 checkpoint: str | None = None):
         """``out``: the output EXR, or None to write nothing (no checkpoint,
         no outputs: the API); ``method``: a :class:`core.method.Method` object
         (default: the registered ``options.method``); ``prior``: the run's
@@ -309,7 +335,9 @@ class RenderJob:
         method on the output (False only to measure what they cost);
         ``compositor``: run the scene's compositor on the result when a final
         render of the scene would (``addon/compositor.py``); what it cannot
-        run on is said in the summary's ``compositor`` and the EXR stays raw."""
+        run on is said in the summary's ``compositor`` and the EXR stays raw;
+        ``checkpoint``: the checkpoint of a job without ``out`` (one view
+        layer of a :class:`LayersJob`, which writes the outputs itself)."""
         from ..addon import executor as ex
         self.ex = ex
         ex.check_scene(scene, view_layer)
@@ -324,7 +352,7 @@ class RenderJob:
             options = dataclasses.replace(options, features=tuple(dict.fromkeys(tuple(options.features) + extra)))
         self.options = options
         self.out = os.path.abspath(bpy_path(out)) if out else None
-        self.ckpt = checkpoint_path(self.out) if self.out else None
+        self.ckpt = checkpoint_path(self.out) if self.out else checkpoint
         self.resume = resume
         if resume and not (self.ckpt and os.path.isfile(self.ckpt)):
             raise JobError(f"--resume: no checkpoint {self.ckpt}")
@@ -566,6 +594,11 @@ class RenderJob:
         self._written = out.summary
         return out.summary
 
+    @property
+    def composite(self):
+        """The compositor's image once the outputs are written, else None."""
+        return self._output.composite if self._output is not None else None
+
     def _run_compositor(self, out: Output) -> None:
         """The scene's compositor on ``out`` (main thread: bpy): sets
         ``out.composite`` and the EXR's ``Composite`` layer, or says in the
@@ -650,6 +683,189 @@ class RenderJob:
 
 
 # ================================================================ denoise
+def layer_checkpoint_path(out: str, layer: str) -> str:
+    """The checkpoint of view layer ``layer`` of a :class:`LayersJob`."""
+    safe = "".join(c if c.isalnum() or c in "-_" else "_" for c in layer)
+    return f"{out}.{safe}.checkpoint.npz"
+
+
+class LayersJob:
+    """Adaptive render of several view layers of one frame, one
+    :class:`RenderJob` each (same options and seed), written as one EXR with
+    a layer per view layer (in the scene's order), then the scene's
+    compositor on all of them (its ``Composite`` layer and the preview), as
+    Blender's own render of the file gives.
+
+    Each layer checkpoints on its own (:func:`layer_checkpoint_path`);
+    ``--resume`` resumes every layer that has a checkpoint and starts the
+    others; the checkpoints are removed once the EXR is written.  The
+    interface is RenderJob's: ``steps()``, ``finish()``, ``write_steps()``,
+    ``run``/``result``/``summary`` (of the last layer rendered, for the UI).
+    """
+
+    def __init__(self, scene, view_layers, options: Options, out: str, reference: str | None = None,
+                 overwrite: bool = False, resume: bool = False, preview: bool = True,
+                 keep_checkpoint: bool = False, executor_factory=None, compositor: bool = True, **job_kw):
+        if not out:
+            raise JobError("a render of several view layers needs an output path")
+        if reference:
+            raise JobError("--reference compares one view layer: choose it with --view-layer")
+        self.scene = scene
+        self.view_layers = list(view_layers)
+        self.names = [vl.name for vl in self.view_layers]
+        self.options = options
+        self.out = os.path.abspath(bpy_path(out))
+        self.preview = preview
+        self.keep_checkpoint = keep_checkpoint
+        try:
+            imageio.check_writable(self.out, overwrite or resume)
+            if preview:
+                imageio.check_writable(preview_path(self.out), overwrite or resume)
+        except imageio.ImageFileError as exc:
+            raise JobError(str(exc)) from None
+        self.composite_plan, self.compositor_note = (composite_plan(scene, self.names) if compositor
+                                                     else (None, "off"))
+        self.jobs = []
+        for vl in self.view_layers:
+            extra = self.composite_plan.features(vl.name) if self.composite_plan else ()
+            opts = dataclasses.replace(options, features=tuple(dict.fromkeys(tuple(options.features) + extra)))
+            ckpt = layer_checkpoint_path(self.out, vl.name)
+            self.jobs.append(RenderJob(scene, vl, opts, None, compositor=False,
+                                       resume=resume and os.path.isfile(ckpt), checkpoint=ckpt,
+                                       executor_factory=executor_factory, **job_kw))
+        self.job = self.jobs[0]
+        self.t0 = time.perf_counter()
+        self.summary: dict | None = None
+        self.composite = None  # the compositor's image, once written
+        self._written = None
+
+    @property
+    def run(self):
+        return self.job.run
+
+    @property
+    def result(self):
+        return self.job.result
+
+    @property
+    def camera(self):
+        return self.job.camera
+
+    def steps(self):
+        n = len(self.jobs)
+        for i, job in enumerate(self.jobs):
+            self.job = job
+            for p in job.steps():
+                p.message = f"view layer {job.layer_name} ({i + 1}/{n}): {p.message}"
+                p.fraction = (i + p.fraction) / n
+                yield p
+        yield Progress("write", self.job.run.iteration, 1.0, f"writing {self.out}")
+
+    def finish(self, partial: bool = False, reconstruct: bool = True) -> dict:
+        """Reconstruct every layer, write the EXR and the preview (inline)."""
+        steps = self.write_steps(partial, reconstruct, threaded=False)
+        while True:
+            try:
+                next(steps)
+            except StopIteration as stop:
+                return stop.value
+
+    def write_steps(self, partial: bool = False, reconstruct: bool = True, threaded: bool = True):
+        """:meth:`RenderJob.write_steps` for all layers: a Work computes every
+        layer's output; the compositor runs here (bpy); a Work writes the
+        EXR (our layers, then ``Composite``) and prepares the preview; the
+        preview is saved here through the colour management and encoded in
+        a last Work.  Layers never rendered (a cancel before them) are left
+        out and named in the summary."""
+        if self._written is not None:
+            return self._written
+        done = [j for j in self.jobs if j.run is not None and j.run.buffers is not None]
+        if not done:
+            raise JobError("nothing was rendered")
+        work = Work(lambda: [j.output(partial, reconstruct) for j in done], f"reconstructing {len(done)} view layers")
+        yield work
+        outs = work.result()
+        extra, comp = [], None
+        note = self.compositor_note
+        if self.composite_plan is not None:
+            if len(done) < len(self.jobs):
+                note = "skipped: not every view layer was rendered"
+            else:
+                comp, note = self._composite(done, outs)
+                if comp is not None:
+                    from ..addon import compositor
+                    extra = [(compositor.COMPOSITE_LAYER, {"Combined": comp})]
+        first = outs[0]
+        merged = Output(first.passes, first.layer, dict(first.attributes), self._summary(done, outs, note, partial),
+                        [(o.layer, o.passes) for o in outs[1:]] + extra, comp)
+        merged.attributes["cycles_adaptive/view_layers"] = json.dumps([j.layer_name for j in done])
+        self.composite = comp
+        t = time.perf_counter()
+
+        def write():
+            write_output(merged, self.out)
+            return RenderJob._preview_pixels(merged) if self.preview and threaded else None
+
+        work = Work(write, f"writing {self.out}")
+        yield work
+        px = work.result()
+        if self.preview:
+            png = preview_path(self.out)
+            if threaded:
+                tmp = imageio.temp_beside(png, ".tif")
+                try:
+                    self.jobs[0]._save_display_tiff(px, tmp)
+                    encode = Work(lambda: RenderJob._encode_png(tmp, png), f"writing {png}")
+                    yield encode
+                    encode.result()
+                finally:
+                    if os.path.exists(tmp):
+                        os.unlink(tmp)
+            else:
+                shown = comp if comp is not None else _array(first.passes["Combined"])
+                self.jobs[0].ex.write_preview(self.scene, shown, png)
+        self.job.run.timing.overhead += time.perf_counter() - t
+        if not partial and not self.keep_checkpoint:
+            for j in done:
+                if os.path.exists(j.ckpt):
+                    os.unlink(j.ckpt)
+        merged.summary["total_seconds"] = time.perf_counter() - self.t0
+        self.summary = self._written = merged.summary
+        return merged.summary
+
+    def _composite(self, jobs, outs) -> tuple:
+        """(composited image or None, note): the compositor on every layer."""
+        from ..addon import compositor
+        try:
+            layers = {}
+            for j, o in zip(jobs, outs):
+                names = self.composite_plan.features(j.layer_name)
+                feats = {f: _array(o.passes[f"Feat_{f}"]) for f in names}
+                layers[j.layer_name] = compositor.layer_passes(_array(o.passes["Combined"]), feats, names)
+            return compositor.composite(self.scene, layers), "applied"
+        except (compositor.CompositorError, KeyError) as exc:
+            return None, f"skipped: {exc}"
+
+    def _summary(self, jobs, outs, note: str, partial: bool) -> dict:
+        """The first layer's summary with the totals of all layers, each
+        layer's own figures under ``layers``, and the files written."""
+        s = dict(outs[0].summary)
+        per = {j.layer_name: o.summary for j, o in zip(jobs, outs)}
+        for key in ("samples", "budget_samples", "regions", "overshoot_samples", "render_seconds",
+                    "adapt_seconds", "reconstruct_seconds", "sampling_seconds"):
+            s[key] = sum(v.get(key) or 0 for v in per.values())
+        s["spp_mean"] = s["samples"] / max(1, sum(v["width"] * v["height"] for v in per.values()))
+        s["estimated_relmse"] = max(v["estimated_relmse"] for v in per.values())
+        s["reconstructed"] = all(v["reconstructed"] for v in per.values())
+        s.update(view_layers=[j.layer_name for j in jobs], out=self.out, compositor=note,
+                 preview=preview_path(self.out) if self.preview else None, partial=bool(partial),
+                 not_rendered=[j.layer_name for j in self.jobs if j not in jobs],
+                 layers={k: {f: v.get(f) for f in ("spp_mean", "samples", "estimated_relmse", "chosen",
+                                                   "render_seconds", "relmse") if f in v}
+                         for k, v in per.items()})
+        return s
+
+
 def denoise_output(path: str, method: str, params: dict | None = None, guard_z: float | None = None,
                    reference: str | None = None) -> Output:
     """Re-run ``method`` on the passes stored in ``path`` (an output EXR of a
@@ -787,9 +1003,15 @@ class FramesJob:
 
     def __init__(self, scene, view_layer, options: Options, out_pattern: str, frames: list,
                  reference_pattern: str | None = None, temporal: str = "none",
-                 reproject_params: dict | None = None, temporal_params: dict | None = None, **job_kw):
+                 reproject_params: dict | None = None, temporal_params: dict | None = None,
+                 view_layers=None, **job_kw):
+        """``view_layers``: several view layers render each frame as a
+        :class:`LayersJob` (default: ``[view_layer]``, a RenderJob)."""
         if temporal not in self.MODES:
             raise JobError(f"unknown temporal mode {temporal!r} (choose {', '.join(self.MODES)})")
+        self.view_layers = list(view_layers) if view_layers else [view_layer]
+        if len(self.view_layers) > 1 and temporal != "none":
+            raise JobError("--temporal works on one view layer: choose it with --view-layer")
         if temporal == "lp" and options.method != "lp":
             raise JobError("--temporal lp needs --method lp")
         self.scene, self.view_layer = scene, view_layer
@@ -826,8 +1048,12 @@ class FramesJob:
                     kw["method"] = var.REPROJECT
             elif self.temporal == "lp":
                 kw["reconstructor"] = self._lp_temporal
-            self.job = RenderJob(self.scene, self.view_layer, opts, frame_path(self.out_pattern, f),
-                                 reference=ref, **kw)
+            if len(self.view_layers) > 1:
+                self.job = LayersJob(self.scene, self.view_layers, opts, frame_path(self.out_pattern, f),
+                                     reference=ref, **kw)
+            else:
+                self.job = RenderJob(self.scene, self.view_layer, opts, frame_path(self.out_pattern, f),
+                                     reference=ref, **kw)
             for p in self.job.steps():
                 p.message = f"frame {f} ({i + 1}/{len(self.frames)}): {p.message}"
                 p.fraction = (i + p.fraction) / len(self.frames)

@@ -16,7 +16,7 @@ import bpy
 
 from ..addon.props import method_params, options
 from .cli import default_out, default_out_pattern, ensure_output_folder
-from .job import FramesJob, JobError, RenderJob
+from .job import FramesJob, JobError, LayersJob, RenderJob, resolve_view_layers
 from .stepper import Stepper, start_writer
 
 STEP_SECONDS = 0.05  # work per timer tick before handing control back to the UI
@@ -61,7 +61,7 @@ def _show(job):
     if run is None or run.buffers is None or res is None:
         return
     alpha = run.buffers.features["alpha"].mean if "alpha" in run.buffers.features else None
-    show_result(res.image, run.buffers.n, res.error, alpha)
+    show_result(res.image, run.buffers.n, res.error, alpha, composite=getattr(job, "composite", None))
 
 
 class CYCLESADAPTIVE_OT_render(bpy.types.Operator):
@@ -194,6 +194,7 @@ class CYCLESADAPTIVE_OT_render(bpy.types.Operator):
         s = scene.cycles_adaptive
         opts = options(scene)
         path = s.output_path.strip()
+        layers = resolve_view_layers(scene, None, context.view_layer)  # what F12 would render
         if s.frame_range:
             frames = list(range(scene.frame_start, scene.frame_end + 1, max(1, scene.frame_step)))
             if not path:
@@ -201,12 +202,15 @@ class CYCLESADAPTIVE_OT_render(bpy.types.Operator):
             else:
                 out = path if "#" in path else \
                     path.replace(".exr", "_####.exr") if path.endswith(".exr") else path + "_####.exr"
-            return FramesJob(scene, context.view_layer, opts, out, frames,
+            return FramesJob(scene, layers[0], opts, out, frames,
                              temporal=s.temporal, overwrite=s.overwrite,
                              reproject_params=method_params(s, "reproject"),
-                             temporal_params=method_params(s, "temporal"))
+                             temporal_params=method_params(s, "temporal"),
+                             view_layers=layers, compositor=s.use_compositor)
         out = path or ensure_output_folder(default_out(scene, opts.method, scene.frame_current))
-        return RenderJob(scene, context.view_layer, opts, out, overwrite=s.overwrite)
+        if len(layers) > 1:
+            return LayersJob(scene, layers, opts, out, overwrite=s.overwrite, compositor=s.use_compositor)
+        return RenderJob(scene, layers[0], opts, out, overwrite=s.overwrite, compositor=s.use_compositor)
 
 
 register, unregister = bpy.utils.register_classes_factory((CYCLESADAPTIVE_OT_render,))

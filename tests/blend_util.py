@@ -74,3 +74,35 @@ def compositor_tree(scene):
             tree.nodes.remove(node)
         out = tree.nodes.new("CompositorNodeComposite")
     return tree, out
+
+
+def add_images(tree, a, b):
+    """The output socket of a node adding colour sockets ``a`` and ``b``
+    (MixRGB Add in 4.2-4.5; the Mix node in RGBA mode in 5.0)."""
+    if hasattr(bpy.types, "CompositorNodeMixRGB"):
+        mix = tree.nodes.new("CompositorNodeMixRGB")
+        mix.blend_type = "ADD"
+        mix.inputs["Fac"].default_value = 1.0
+        tree.links.new(a, mix.inputs[1])
+        tree.links.new(b, mix.inputs[2])
+        return mix.outputs["Image"]
+    mix = tree.nodes.new("ShaderNodeMix")
+    mix.data_type, mix.blend_type = "RGBA", "ADD"
+    mix.clamp_result = False
+    colour = [s for s in mix.inputs if s.type == "RGBA"]
+    mix.inputs[0].default_value = 1.0
+    tree.links.new(a, colour[0])
+    tree.links.new(b, colour[1])
+    return next(s for s in mix.outputs if s.type == "RGBA")
+
+
+def two_layer_scene(width=24, height=16):
+    """:func:`build_scene` with a second view layer, "Back", whose material
+    override (plain white diffuse) makes its image differ from "ViewLayer"'s."""
+    scene = build_scene(width, height)
+    back = scene.view_layers.new("Back")
+    white = bpy.data.materials.new("white")
+    white.use_nodes = True
+    white.node_tree.nodes["Principled BSDF"].inputs["Base Color"].default_value = (1, 1, 1, 1)
+    back.material_override = white
+    return scene

@@ -98,3 +98,67 @@ def test_no_compositor_and_compositor_off(tmp_path):
     scene.render.use_compositing = False
     _, summary = _job(scene, tmp_path, "c.exr")
     assert summary["compositor"] == "none"
+
+
+def _mix_layers(scene):
+    from blend_util import add_images
+    tree, out = compositor_tree(scene)
+    fore = tree.nodes.new("CompositorNodeRLayers")
+    fore.layer = "ViewLayer"
+    back = tree.nodes.new("CompositorNodeRLayers")
+    back.layer = "Back"
+    tree.links.new(add_images(tree, fore.outputs["Image"], back.outputs["Image"]), out.inputs[0])
+
+
+def test_two_view_layers_one_exr_layer_each_and_the_compositor_mixes_them(tmp_path):
+    from blend_util import two_layer_scene
+    from cycles_adaptive.operators.job import LayersJob, resolve_view_layers
+    scene = two_layer_scene()
+    _mix_layers(scene)
+    layers = resolve_view_layers(scene)  # as Blender renders the file: both
+    assert [vl.name for vl in layers] == ["ViewLayer", "Back"]
+    opts = Options(method="var", spp=4, initial_spp=2, subsets=2, iterations=1, seed=1)
+    out = str(tmp_path / "two.exr")
+    job = LayersJob(scene, layers, opts, out)
+    msgs = [p.message for p in job.steps()]
+    assert any(m.startswith("view layer Back (2/2)") for m in msgs)
+    summary = job.finish()
+    assert summary["view_layers"] == ["ViewLayer", "Back"] and summary["compositor"] == "applied"
+    _, meta = imageio.read_layers(out)
+    assert meta["layers"] == ["ViewLayer", "Back", "Composite"]
+    fore, _ = imageio.read_layers(out, "ViewLayer")
+    back, _ = imageio.read_layers(out, "Back")
+    comp, _ = imageio.read_layers(out, "Composite")
+    assert np.all(fore["Samples"] >= 4) and np.all(back["Samples"] >= 4)
+    assert np.abs(fore["Combined"][..., :3] - back["Combined"][..., :3]).max() > 0.05  # two different images
+    np.testing.assert_allclose(comp["Combined"][..., :3],
+                               fore["Combined"][..., :3] + back["Combined"][..., :3], rtol=1e-5, atol=1e-5)
+    assert summary["samples"] == int(fore["Samples"].sum() + back["Samples"].sum())
+    assert os.path.isfile(summary["preview"])
+    assert not [f for f in os.listdir(tmp_path) if "checkpoint" in f]
+
+
+def test_one_layer_of_a_mixing_compositor_says_the_compositor_was_skipped(tmp_path):
+    from blend_util import two_layer_scene
+    scene = two_layer_scene()
+    _mix_layers(scene)
+    _, summary = _job(scene, tmp_path)
+    assert summary["compositor"].startswith("skipped:") and "'Back'" in summary["compositor"]
+
+
+def test_view_layer_choice_follows_blender_and_refuses_bad_names():
+    from blend_util import two_layer_scene
+    from cycles_adaptive.operators.job import JobError, resolve_view_layers
+    scene = two_layer_scene()
+    names = lambda spec, **kw: [vl.name for vl in resolve_view_layers(scene, spec, **kw)]
+    assert names(None) == names("all") == ["ViewLayer", "Back"]
+    assert names("Back,ViewLayer") == ["Back", "ViewLayer"]
+    scene.render.use_single_layer = True
+    assert names(None, active=scene.view_layers["Back"]) == ["Back"]
+    scene.render.use_single_layer = False
+    scene.view_layers["Back"].use = False
+    assert names(None) == ["ViewLayer"]
+    for bad, msg in [("Back", "disabled"), ("Nope", "no view layer 'Nope'"), ("ViewLayer,ViewLayer", "distinct"),
+                     (",", "expected all")]:
+        with pytest.raises(JobError, match=msg):
+            resolve_view_layers(scene, bad)
