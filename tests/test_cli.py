@@ -301,3 +301,38 @@ def test_the_panels_empty_output_field_follows_the_scenes_output_path(tmp_path):
         assert CYCLESADAPTIVE_OT_render._make_job(None, ctx).out == str(tmp_path / "mine.exr")
     finally:
         pkg.unregister()
+
+
+def test_view_layers_and_the_compositor_from_the_command_line(tmp_path):
+    """A file with two view layers whose compositor adds them: by default
+    both render (one EXR layer each, and the composite), per frame of a
+    range too; --view-layer picks one, and --no-compositor leaves it raw."""
+    import bpy as _bpy
+    from blend_util import add_images, compositor_tree, two_layer_scene
+    from cycles_adaptive.core import io as imageio
+    scene = two_layer_scene(24, 16)
+    tree, out_node = compositor_tree(scene)
+    fore, back = tree.nodes.new("CompositorNodeRLayers"), tree.nodes.new("CompositorNodeRLayers")
+    fore.layer, back.layer = "ViewLayer", "Back"
+    tree.links.new(add_images(tree, fore.outputs["Image"], back.outputs["Image"]), out_node.inputs[0])
+    blend = str(tmp_path / "two.blend")
+    _bpy.ops.wm.save_as_mainfile(filepath=blend)
+    common = ("--method", "var", "--spp", "4", "--initial-spp", "2", "--json")
+    out = str(tmp_path / "f_####.exr")
+    r = _cli("render", blend, "--frames", "1-2", "--out", out, *common)
+    assert r.returncode == 0, r.stderr
+    lines = [json.loads(ln) for ln in r.stdout.splitlines() if ln.startswith("{")]
+    for ln in lines[:-1]:
+        assert ln["view_layers"] == ["ViewLayer", "Back"] and ln["compositor"] == "applied"
+        _, meta = imageio.read_layers(ln["out"])
+        assert meta["layers"] == ["ViewLayer", "Back", "Composite"]
+    assert [ln["frame"] for ln in lines[:-1]] == [1, 2]
+    r = _cli("render", blend, "--view-layer", "Back", "--no-compositor", "--out", str(tmp_path / "b.exr"),
+             *common)
+    assert r.returncode == 0, r.stderr
+    res = _last_json(r.stdout)
+    assert res["compositor"] == "off" and "view_layers" not in res
+    _, meta = imageio.read_layers(res["out"])
+    assert meta["layers"] == ["Back"]
+    r = _cli("render", blend, "--view-layers", "Nope", "--out", str(tmp_path / "n.exr"))
+    assert r.returncode == 2 and "no view layer 'Nope'" in r.stderr
