@@ -1058,10 +1058,26 @@ class FramesJob:
                 p.message = f"frame {f} ({i + 1}/{len(self.frames)}): {p.message}"
                 p.fraction = (i + p.fraction) / len(self.frames)
                 yield p
-            summary = self.job.finish()
+            summary = yield from self._write_frame(i, f)
             self.summaries.append(summary)
             self._prev = (self.job.run.buffers, self.job.camera, self.job.run.method_state)
             yield summary
+
+    def _write_frame(self, i: int, frame: int):
+        """The finished frame's outputs through its job's ``write_steps``:
+        each pure part (EXR write, PNG encoding) is yielded as a Progress
+        carrying its Work, so the UI's stepper runs it off the main thread
+        (a plain consumer runs it inline when the generator resumes); returns
+        the frame's summary."""
+        steps = self.job.write_steps()
+        fraction = (i + 1) / len(self.frames)
+        while True:
+            try:
+                work = next(steps)
+            except StopIteration as stop:
+                return stop.value
+            yield Progress("write", self.job.run.iteration, fraction,
+                           f"frame {frame} ({i + 1}/{len(self.frames)}): {work.label}", work=work)
 
     def _reproject_prior(self, buffers):
         """The previous frame's samples forward-reprojected into this frame

@@ -1,6 +1,8 @@
 """The modal operator's stepping logic (runs without a Blender window): time
 slices, Work on a worker thread, Esc without waiting for it."""
+import os
 import threading
+import time
 
 import pytest
 
@@ -367,3 +369,34 @@ def test_a_work_that_must_run_on_the_main_thread_runs_inline():
     job = FakeJob(3, work_at=1, work=work)
     st = Stepper(job, slice_seconds=10.0, start=started.append)
     assert st.step() is True and started == [] and ran_on == [threading.main_thread()] and job.results == [5]
+
+
+def test_frames_that_finish_mid_range_are_written_off_the_main_thread(tmp_path, monkeypatch):
+    bpy = pytest.importorskip("bpy")
+    from blend_util import build_scene
+
+    from cycles_adaptive.core.pipeline import Options
+    from cycles_adaptive.operators import job as jobs
+
+    scene = build_scene(16, 12)
+    scene.frame_start, scene.frame_end = 1, 2
+    opts = Options(method="var", spp=4, initial_spp=2, subsets=2, frame=1, task_cost=64)
+    written = []
+    real = jobs.write_output
+
+    def recording(output, path):
+        written.append((path, threading.current_thread() is threading.main_thread()))
+        real(output, path)
+
+    monkeypatch.setattr(jobs, "write_output", recording)
+    job = jobs.FramesJob(scene, bpy.context.view_layer, opts, str(tmp_path / "f_####.exr"), [1, 2])
+    threads = Threads()
+    st = Stepper(job, slice_seconds=0.0, start=threads, start_write=start_thread)
+    for _ in range(10000):
+        if st.step():
+            break
+        time.sleep(0.001)
+    threads.join()
+    assert [os.path.basename(p) for p, _ in written] == ["f_0001.exr", "f_0002.exr"]
+    assert not any(on_main for _, on_main in written)  # neither frame's EXR was written on the main thread
+    assert st.summary["outs"] == [str(tmp_path / "f_0001.exr"), str(tmp_path / "f_0002.exr")]
