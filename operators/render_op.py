@@ -53,15 +53,32 @@ def store_summary(settings, summary: dict, cancelled: bool) -> None:
     settings.status = f"{what}: {settings.last_spp:.1f} spp{note}, wrote {summary.get('out')}"
 
 
-def _show(job):
-    from ..addon.display import show_result
+def _display_work(job):
+    """The Image Editor's pixels of ``job``'s result as a Work (numpy only:
+    the stepper runs it on the writer thread), or None when there is none."""
+    from ..addon.display import prepare_result
+    from ..core.pipeline import Work
     run = job.run
     inner = getattr(job, "job", job)  # a FramesJob shows its last frame
     res = getattr(inner, "result", None)
     if run is None or run.buffers is None or res is None:
-        return
+        return None
     alpha = run.buffers.features["alpha"].mean if "alpha" in run.buffers.features else None
-    show_result(res.image, run.buffers.n, res.error, alpha, composite=getattr(job, "composite", None))
+    composite = getattr(inner, "composite", None)
+    return Work(lambda: prepare_result(res.image, run.buffers.n, res.error, alpha, composite),
+                "preparing the Image Editor's images")
+
+
+def _show(job, prepared=None):
+    """Show the result in the Image Editor: the pixels ``prepared`` off the
+    main thread (:func:`_display_work`), else prepared here."""
+    from ..addon.display import show_prepared
+    if prepared is None:
+        work = _display_work(job)
+        if work is None:
+            return
+        prepared = work.result()
+    show_prepared(prepared)
 
 
 class CYCLESADAPTIVE_OT_render(bpy.types.Operator):
@@ -73,6 +90,7 @@ class CYCLESADAPTIVE_OT_render(bpy.types.Operator):
 
     _timer = None
     _job = None
+    _display = None
     _stepper = None
 
     @classmethod
@@ -108,7 +126,8 @@ class CYCLESADAPTIVE_OT_render(bpy.types.Operator):
         except Exception as exc:
             self.report({"ERROR"}, str(exc))
             return {"CANCELLED"}
-        self._stepper = Stepper(self._job, STEP_SECONDS, start_write=start_writer)
+        self._display = None
+        self._stepper = Stepper(self._job, STEP_SECONDS, start_write=start_writer, after_write=self._prepare)
         s = context.scene.cycles_adaptive
         s.running, s.progress, s.status = True, 0.0, "Starting"
         wm = context.window_manager
@@ -140,6 +159,10 @@ class CYCLESADAPTIVE_OT_render(bpy.types.Operator):
             return self._end(context, cancelled=st.cancelled)
         self._update(context)
         return {"RUNNING_MODAL"}
+
+    def _prepare(self, job):
+        self._display = _display_work(job)
+        return self._display
 
     def _update(self, context):
         """Progress and stage into the panel, the progress bar and the status bar."""
@@ -176,7 +199,7 @@ class CYCLESADAPTIVE_OT_render(bpy.types.Operator):
                 st.wait()
             summary = st.summary
             if summary is not None:
-                _show(self._job)
+                _show(self._job, self._display.result() if self._display is not None else None)
                 store_summary(s, summary, cancelled)
             else:
                 s.status = "Failed: nothing written" if failed else "Cancelled before any sample was rendered"

@@ -71,8 +71,13 @@ class Stepper:
     operator passes :func:`start_writer`; default None: the write runs inline,
     within the ``step()`` or ``cancel()`` that begins it)."""
 
-    def __init__(self, job, slice_seconds: float = 0.05, start=start_thread, start_write=None):
+    def __init__(self, job, slice_seconds: float = 0.05, start=start_thread, start_write=None,
+                 after_write=None):
+        """``after_write(job)``: called once the outputs are written; a Work
+        it returns (e.g. the Image Editor's pixels, numpy only) runs on the
+        writer thread too, before ``step()`` returns True."""
         self.job = job
+        self.after_write = after_write
         self.slice = slice_seconds
         self.start = start
         self.start_write = start_write
@@ -204,6 +209,14 @@ class Stepper:
         range writes the frame in progress through its RenderJob's, then its
         own ``finish`` (which finds that frame written); any other job's
         ``finish`` inline."""
+        summary = yield from self._job_write_steps(partial, reconstruct)
+        work = self.after_write(self.job) if self.after_write is not None else None
+        if work is not None:
+            yield work
+            work.result()
+        return summary
+
+    def _job_write_steps(self, partial: bool, reconstruct: bool):
         job = self.job
         inner = getattr(job, "job", None)
         if hasattr(job, "write_steps"):

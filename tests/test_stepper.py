@@ -400,3 +400,43 @@ def test_frames_that_finish_mid_range_are_written_off_the_main_thread(tmp_path, 
     assert [os.path.basename(p) for p, _ in written] == ["f_0001.exr", "f_0002.exr"]
     assert not any(on_main for _, on_main in written)  # neither frame's EXR was written on the main thread
     assert st.summary["outs"] == [str(tmp_path / "f_0001.exr"), str(tmp_path / "f_0002.exr")]
+
+
+def test_after_write_work_runs_on_the_writer_thread_before_the_end():
+    job = WritingJob(3)
+    threads, start = _writer_threads()
+    seen = []
+
+    def after(j):
+        assert j is job
+        return Work(lambda: seen.append(threading.current_thread() is threading.main_thread()) or "pixels",
+                    "preparing (test)")
+
+    st = Stepper(job, slice_seconds=10.0, start_write=start, after_write=after)
+    assert st.step() is False
+    job.gate.set()
+    while not st.step():
+        for t in list(threads):
+            t.join(60)
+    assert seen == [False]  # ran once, on a writer thread, before step() said the end
+
+
+def test_the_image_editor_pixels_are_prepared_without_blender_and_shown_as_given():
+    bpy = pytest.importorskip("bpy")
+    import numpy as np
+
+    from cycles_adaptive.addon import display
+    rng = np.random.default_rng(0)
+    image = rng.random((6, 5, 3))
+    samples = rng.integers(1, 9, (6, 5)).astype(float)
+    error = rng.random((6, 5)) * 1e-2
+    composite = rng.random((6, 5, 4)).astype(np.float32)
+    prepared = display.prepare_result(image, samples, error, composite=composite)
+    assert set(prepared) == {display.RESULT, display.SAMPLES, display.ERROR, display.COMPOSITE}
+    shown = display.show_prepared(prepared)
+    assert shown.name == display.COMPOSITE
+    px = np.empty(6 * 5 * 4, np.float32)
+    bpy.data.images[display.RESULT].pixels.foreach_get(px)
+    np.testing.assert_allclose(px.reshape(6, 5, 4)[::-1][..., :3], image, atol=1e-6)  # rows bottom to top
+    bpy.data.images[display.SAMPLES].pixels.foreach_get(px)
+    np.testing.assert_allclose(px.reshape(6, 5, 4)[::-1][..., 0], samples / samples.max(), atol=1e-6)
