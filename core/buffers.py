@@ -35,6 +35,8 @@ The statistics above do not depend on the halves.
 """
 from __future__ import annotations
 
+import math
+import threading
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -50,6 +52,10 @@ FEATURE_CHANNELS = {
     "transmission": 3,
     "object_index": 1,
     "alpha": 1,
+    # single-channel passes a scene's compositor may read (addon/compositor.py); the others have 3
+    "z": 1,
+    "mist": 1,
+    "material_index": 1,
 }
 
 #: a depth at or above this is "infinite" (Blender's Z pass writes 1e10 where no
@@ -182,80 +188,141 @@ class Buffers:
         features : dict name -> (h, w, C) group means of feature passes
         region : optional (x0, y0, x1, y1) pixel rectangle (top-left origin,
             exclusive upper bounds) the group covers; default the whole frame.
+
+        Chan's update (module notes) per pixel, over row bands of the region
+        on the controller's threads (:func:`core.parallel.run_bands`): each
+        band updates its own rows, so the result is the same bit for bit for
+        any thread count.  A missing feature pass is a KeyError raised before
+        anything changes.
         """
         sl = _region_slice(region, self.shape)
+        color = np.asarray(color)
         cnt = np.broadcast_to(np.asarray(count, np.float64), color.shape[:2])
-        n_a = self.n[sl]
-        n = n_a + cnt
-        has = cnt > 0
-        self._half_add(sl, cnt, np.asarray(color, np.float64), features)
-        safe_n = np.where(n > 0, n, 1.0)
-        wb = np.where(has, cnt / safe_n, 0.0)[..., None]
-        cross = np.where(has, n_a * cnt / safe_n, 0.0)[..., None]
-        _chan_update(self.color, sl, np.asarray(color, np.float64), wb, cross)
+        feats = {}
         for name, stat in self.features.items():
             if features is None or name not in features:
                 raise KeyError(f"group lacks feature pass {name!r}")
-            _chan_update(stat, sl, np.asarray(features[name], np.float64).reshape(
-                stat.mean[sl].shape), wb, cross)
-        self.n[sl] = n
-        self.k[sl] = self.k[sl] + has
+            feats[name] = np.asarray(features[name]).reshape(stat.mean[sl].shape)
+        hfeats = {}
+        if self.half is not None and features:
+            for name, arr in self.half.features.items():
+                f = features.get(name)
+                if f is not None:
+                    hfeats[name] = feats[name] if name in feats else np.asarray(f).reshape(arr[sl].shape)
+        y0 = sl[0].start
+
+        def band(rows):
+            r0, r1 = rows
+            bs = (slice(y0 + r0, y0 + r1), sl[1])
+            c = cnt[r0:r1]
+            col = np.asarray(color[r0:r1], np.float64)
+            shape = c.shape
+            with np.errstate(invalid="ignore", over="ignore", divide="ignore"):
+                n_a = self.n[bs]
+                n = np.add(n_a, c, out=_tmp("n", shape))
+                has = np.greater(c, 0.0, out=_tmp("has", shape, bool))
+                self._half_add(bs, c, col, {k: v[r0:r1] for k, v in hfeats.items()})
+                safe_n = _where_positive(n, _tmp("safe", shape))
+                wb = np.divide(c, safe_n, out=_tmp("wb", shape))
+                lacks = np.logical_not(has, out=_tmp("lacks", shape, bool))
+                np.copyto(wb, 0.0, where=lacks)
+                cross = np.multiply(n_a, c, out=_tmp("cross", shape))
+                np.divide(cross, safe_n, out=cross)
+                np.copyto(cross, 0.0, where=lacks)
+                wb, cross = wb[..., None], cross[..., None]
+                _chan_update(self.color, bs, col, wb, cross)
+                for name, stat in self.features.items():
+                    _chan_update(stat, bs, np.asarray(feats[name][r0:r1], np.float64), wb, cross)
+                self.n[bs] = n
+                k = self.k[bs]
+                np.add(k, has, out=k)
+
+        _run_rows(band, self.n[sl].shape)
 
     def merge(self, other: "Buffers", region=None) -> None:
         """Merge accumulated buffers ``other`` (covering ``region``) in place.
 
         Chan's update for two groups each with their own M2; degrees of freedom
-        add: k = k_a + k_b.
+        add: k = k_a + k_b.  Over row bands as :meth:`merge_group` (the same
+        bits for any thread count); a feature pass ``other`` lacks is a
+        KeyError raised before anything changes.
         """
         sl = _region_slice(region, self.shape)
-        self._half_merge(sl, other)
-        n_a, n_b = self.n[sl], other.n
-        n = n_a + n_b
-        safe_n = np.where(n > 0, n, 1.0)
-        wb = (n_b / safe_n)[..., None]
-        cross = (n_a * n_b / safe_n)[..., None]
-        _chan_update(self.color, sl, other.color.mean, wb, cross, other.color.m2)
-        for name, stat in self.features.items():
-            o = other.features[name]
-            _chan_update(stat, sl, o.mean, wb, cross, o.m2)
-        self.n[sl] = n
-        self.k[sl] = self.k[sl] + other.k
+        for name in self.features:
+            other.features[name]  # noqa: B018  (KeyError before any change)
+        # the halves of ``other`` exist for the whole region or not at all
+        split = self.half is not None and other._halves_valid()
+        y0 = sl[0].start
+
+        def band(rows):
+            r0, r1 = rows
+            bs = (slice(y0 + r0, y0 + r1), sl[1])
+            with np.errstate(invalid="ignore", over="ignore", divide="ignore"):
+                if self.half is not None:
+                    self._half_merge(bs, other, rows, split)
+                n_a, n_b = self.n[bs], other.n[r0:r1]
+                shape = n_a.shape
+                n = np.add(n_a, n_b, out=_tmp("n", shape))
+                safe_n = _where_positive(n, _tmp("safe", shape))
+                wb = np.divide(n_b, safe_n, out=_tmp("wb", shape))[..., None]
+                cross = np.multiply(n_a, n_b, out=_tmp("cross", shape))
+                np.divide(cross, safe_n, out=cross)
+                cross = cross[..., None]
+                _chan_update(self.color, bs, other.color.mean[r0:r1], wb, cross, other.color.m2[r0:r1])
+                for name, stat in self.features.items():
+                    o = other.features[name]
+                    _chan_update(stat, bs, o.mean[r0:r1], wb, cross, o.m2[r0:r1])
+                self.n[bs] = n
+                k = self.k[bs]
+                np.add(k, other.k[r0:r1], out=k)
+
+        _run_rows(band, self.n[sl].shape)
 
     # ------------------------------------------------------------------ halves
     def _half_add(self, sl, cnt, color, features, to_a=None) -> None:
         """Add a group (means ``color`` / ``features``, ``cnt`` samples) to
         half A where A has no more samples than B (or where ``to_a``), before
-        ``self.n`` is updated."""
+        ``self.n`` is updated; in place on the rows ``sl``."""
         h = self.half
         if h is None:
             return
+        hn = h.n[sl]
+        shape = hn.shape
         if to_a is None:
-            to_a = 2.0 * h.n[sl] <= self.n[sl]
-        add = np.where(to_a & (cnt > 0), cnt, 0.0)
-        n_new = h.n[sl] + add
-        w = np.where(add > 0, add / np.where(n_new > 0, n_new, 1.0), 0.0)[..., None]
+            twice = np.multiply(hn, 2.0, out=_tmp("h_twice", shape))
+            to_a = np.less_equal(twice, self.n[sl], out=_tmp("h_to_a", shape, bool))
+        sel = np.greater(cnt, 0.0, out=_tmp("h_sel", shape, bool))
+        np.logical_and(to_a, sel, out=sel)
+        add = _tmp("h_add", shape)       # where(to_a & (cnt > 0), cnt, 0)
+        add.fill(0.0)
+        np.copyto(add, cnt, where=sel)
+        n_new = np.add(hn, add, out=_tmp("h_n", shape))
+        w = np.divide(add, _where_positive(n_new, _tmp("h_den", shape)), out=_tmp("h_w", shape))
+        np.copyto(w, 0.0, where=np.logical_not(np.greater(add, 0.0, out=sel), out=sel))
+        w = w[..., None]
         with np.errstate(invalid="ignore", over="ignore"):
-            h.color[sl] = h.color[sl] + (color - h.color[sl]) * w
+            _toward(h.color[sl], color, w)
             for name, arr in h.features.items():
                 f = features.get(name) if features else None
                 if f is None:
                     continue
-                f = np.asarray(f, np.float64).reshape(arr[sl].shape)
-                arr[sl] = arr[sl] + (f - arr[sl]) * w
+                a = arr[sl]
+                _toward(a, np.asarray(f, np.float64).reshape(a.shape), w)
         h.n[sl] = n_new
 
-    def _half_merge(self, sl, other: "Buffers") -> None:
-        """Halves of ``self`` after merging ``other``: other's larger half goes
-        to our smaller one where both are split; where ``other`` has no halves,
-        it counts as one group (:meth:`_half_add`)."""
+    def _half_merge(self, sl, other: "Buffers", rows, split: bool) -> None:
+        """Halves of ``self`` on rows ``sl`` after merging ``other`` (its rows
+        ``rows``): other's larger half goes to our smaller one where both are
+        split (``split``: :meth:`_halves_valid` of ``other``); otherwise
+        ``other`` counts as one group (:meth:`_half_add`)."""
         if self.half is None:
             return
-        oh = other.halves()
-        if oh is None:
-            feats = {k: v.mean for k, v in other.features.items()}
-            self._half_add(sl, other.n, other.color.mean, feats)
+        r0, r1 = rows
+        if not split:
+            feats = {k: v.mean[r0:r1] for k, v in other.features.items()}
+            self._half_add(sl, other.n[r0:r1], other.color.mean[r0:r1], feats)
             return
-        (na, ca, fa), (nb, cb, fb) = oh
+        (na, ca, fa), (nb, cb, fb) = other._halves_rows(r0, r1)
         a_small = 2.0 * self.half.n[sl] <= self.n[sl]
         big_is_a = na >= nb
         first = a_small == big_is_a  # where other's A goes to our A
@@ -265,30 +332,41 @@ class Buffers:
         f_to_a = {k: pick(fa[k], fb[k], first) for k in fa if k in fb}
         self._half_add(sl, n_to_a, c_to_a, f_to_a, to_a=np.ones(n_to_a.shape, bool))
 
-    def halves(self):
-        """``((n_A, color_A, features_A), (n_B, color_B, features_B))`` of the
-        disjoint halves, or None when they are unknown or inconsistent with
-        the buffers (``n_A`` outside ``[0, n]``, shapes that differ).  Half B's
-        means are ``(n mean - n_A mean_A) / n_B`` (0 where ``n_B = 0``)."""
+    def _halves_valid(self) -> bool:
+        """Whether :meth:`halves` is defined: half A known, of the buffers'
+        shapes, with ``0 <= n_A <= n`` everywhere."""
         h = self.half
         if h is None or h.n.shape != self.n.shape or h.color.shape != self.color.mean.shape:
-            return None
-        if not np.all((h.n >= 0) & (h.n <= self.n)):
-            return None
-        nb = self.n - h.n
+            return False
+        return bool(np.all((h.n >= 0) & (h.n <= self.n)))
+
+    def _halves_rows(self, r0: int, r1: int):
+        """:meth:`halves` on rows ``r0:r1`` (validity not checked)."""
+        h = self.half
+        n, hn = self.n[r0:r1], h.n[r0:r1]
+        nb = n - hn
         safe = np.where(nb > 0, nb, 1.0)[..., None]
-        rest = lambda whole, a: np.where(nb[..., None] > 0, (self.n[..., None] * whole
-                                                             - h.n[..., None] * a) / safe, 0.0)
+        rest = lambda whole, a: np.where(nb[..., None] > 0, (n[..., None] * whole
+                                                             - hn[..., None] * a) / safe, 0.0)
         with np.errstate(invalid="ignore", over="ignore"):
-            cb = rest(self.color.mean, h.color)
+            cb = rest(self.color.mean[r0:r1], h.color[r0:r1])
             fa, fb = {}, {}
             for name, arr in h.features.items():
                 st = self.features.get(name)
                 if st is None or st.mean.shape != arr.shape:
                     continue
-                fa[name] = arr
-                fb[name] = rest(st.mean, arr)
-        return (h.n, h.color, fa), (nb, cb, fb)
+                fa[name] = arr[r0:r1]
+                fb[name] = rest(st.mean[r0:r1], arr[r0:r1])
+        return (hn, h.color[r0:r1], fa), (nb, cb, fb)
+
+    def halves(self):
+        """``((n_A, color_A, features_A), (n_B, color_B, features_B))`` of the
+        disjoint halves, or None when they are unknown or inconsistent with
+        the buffers (``n_A`` outside ``[0, n]``, shapes that differ).  Half B's
+        means are ``(n mean - n_A mean_A) / n_B`` (0 where ``n_B = 0``)."""
+        if not self._halves_valid():
+            return None
+        return self._halves_rows(0, self.height)
 
     # -------------------------------------------------------------- statistics
     @property
@@ -296,23 +374,28 @@ class Buffers:
         """(H, W) bool: at least two groups, so a variance estimate exists."""
         return self.k >= 2
 
-    def sample_variance(self, stat: Stat | None = None) -> np.ndarray:
-        """Per-sample variance s^2 = M2 / (k - 1); +inf where k < 2."""
+    def sample_variance(self, stat: Stat | None = None, rows=None) -> np.ndarray:
+        """Per-sample variance s^2 = M2 / (k - 1); +inf where k < 2.  ``rows``
+        ``(r0, r1)``: those rows only (the same values)."""
         stat = self.color if stat is None else stat
-        dof = (self.k - 1.0)[..., None]
+        r = slice(None) if rows is None else slice(int(rows[0]), int(rows[1]))
+        dof = (self.k[r] - 1.0)[..., None]
         with np.errstate(divide="ignore", invalid="ignore"):
-            v = np.where(dof > 0, stat.m2 / np.where(dof > 0, dof, 1.0), np.inf)
+            v = np.where(dof > 0, stat.m2[r] / np.where(dof > 0, dof, 1.0), np.inf)
         return v
 
-    def variance_of_mean(self, stat: Stat | None = None) -> np.ndarray:
+    def variance_of_mean(self, stat: Stat | None = None, rows=None) -> np.ndarray:
         """Variance of the pixel mean, s^2 / n = M2 / ((k - 1) n); +inf where
         k < 2 or n = 0 (a NaN M2 stays NaN).  One (H, W, C) allocation: the
-        methods call it on full frames."""
+        methods call it on full frames.  ``rows`` ``(r0, r1)``: those rows
+        only (the same values; row bands of the threaded callers)."""
         stat = self.color if stat is None else stat
-        ok = (self.k >= 2) & (self.n > 0)
-        den = np.where(ok, (self.k - 1.0) * self.n, 1.0)[..., None]
-        out = np.full(stat.m2.shape, np.inf)
-        np.divide(stat.m2, den, out=out, where=ok[..., None])
+        r = slice(None) if rows is None else slice(int(rows[0]), int(rows[1]))
+        k, n, m2 = self.k[r], self.n[r], stat.m2[r]
+        ok = (k >= 2) & (n > 0)
+        den = np.where(ok, (k - 1.0) * n, 1.0)[..., None]
+        out = np.full(m2.shape, np.inf)
+        np.divide(m2, den, out=out, where=ok[..., None])
         return out
 
     def calibrated_variance(self) -> np.ndarray:
@@ -373,17 +456,87 @@ def _region_slice(region, shape):
     return (slice(y0, y1), slice(x0, x1))
 
 
+#: pixels per row band of the merges (rows = BAND_PIXELS // width): a band's
+#: temporaries stay in the core's cache; shape only, never the thread count
+BAND_PIXELS = 32768
+#: below this many pixels a merge runs inline: threads do not pay (measured:
+#: docs/notes/farm.md)
+INLINE_PIXELS = 65536
+
+
+def band_rows(width: int, pixels: int = BAND_PIXELS) -> int:
+    """Rows per band for rows ``width`` pixels wide: about ``pixels`` per band."""
+    return max(1, int(pixels) // max(1, int(width)))
+
+
+def _run_rows(fn, shape) -> None:
+    """``fn((r0, r1))`` over the row bands of an (h, w) region, on the
+    controller's threads from :data:`INLINE_PIXELS` pixels on."""
+    from . import parallel
+    h, w = int(shape[0]), int(shape[1])
+    if h * w == 0:
+        return
+    if h * w < INLINE_PIXELS:
+        fn((0, h))
+        return
+    parallel.run_bands(fn, h, band_rows(w))
+
+
+_SCRATCH = threading.local()
+#: elements below which :func:`_tmp` allocates instead (no per-call lookups)
+SCRATCH_MIN = 8192
+
+
+def _tmp(name: str, shape, dtype=np.float64) -> np.ndarray:
+    """This thread's scratch array ``name`` of ``shape`` (contents undefined):
+    the merges' band temporaries, reused from band to band so they are not
+    allocated (and page-faulted) again for every band.  Grows to the largest
+    band seen; a few MB per thread."""
+    size = math.prod(shape)
+    if size < SCRATCH_MIN:  # small: malloc is cheap and faults nothing
+        return np.empty(shape, dtype)
+    pool = getattr(_SCRATCH, "arrays", None)
+    if pool is None:
+        pool = _SCRATCH.arrays = {}
+    key = (name, dtype)
+    buf = pool.get(key)
+    if buf is None or buf.size < size:
+        buf = pool[key] = np.empty(size, dtype)
+    return buf[:size].reshape(shape)
+
+
+def _where_positive(x: np.ndarray, out: np.ndarray) -> np.ndarray:
+    """``np.where(x > 0, x, 1.0)`` into ``out`` (the same values)."""
+    out.fill(1.0)
+    np.copyto(out, x, where=np.greater(x, 0.0, out=_tmp("positive", x.shape, bool)))
+    return out
+
+
+def _toward(a: np.ndarray, b, w) -> None:
+    """``a <- a + (b - a) * w`` in place (one scratch temporary), the same
+    bits as the expression."""
+    d = np.subtract(b, a, out=_tmp("toward", a.shape))
+    np.multiply(d, w, out=d)
+    np.add(a, d, out=a)
+
+
 def _chan_update(stat: Stat, sl, mean_b, wb, cross, m2_b=None):
-    """Chan et al. parallel update of ``stat[sl]`` with group b, in place.
-    Non-finite input propagates as it is (methods sanitise); no warnings."""
+    """Chan et al. parallel update of ``stat[sl]`` with group b, in place:
+    ``mean += delta wb``, ``M2 += delta^2 cross (+ M2_b)`` with ``delta =
+    mean_b - mean``, evaluated in the module notes' order (two of this thread's
+    scratch arrays, :func:`_tmp`).  Non-finite input propagates as it is (methods
+    sanitise); no warnings."""
     with np.errstate(invalid="ignore", over="ignore"):
         mean_a = stat.mean[sl]
-        delta = mean_b - mean_a
-        stat.mean[sl] = mean_a + delta * wb
-        upd = stat.m2[sl] + delta * delta * cross
+        m2 = stat.m2[sl]
+        delta = np.subtract(mean_b, mean_a, out=_tmp("delta", mean_a.shape))
+        step = np.multiply(delta, wb, out=_tmp("step", mean_a.shape))
+        np.add(mean_a, step, out=mean_a)
+        np.multiply(delta, delta, out=delta)
+        np.multiply(delta, cross, out=delta)
+        np.add(m2, delta, out=m2)
         if m2_b is not None:
-            upd = upd + m2_b
-        stat.m2[sl] = upd
+            np.add(m2, m2_b, out=m2)
 
 
 def luminance(rgb: np.ndarray) -> np.ndarray:

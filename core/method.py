@@ -17,7 +17,7 @@ from typing import Any, Protocol, runtime_checkable
 
 import numpy as np
 
-from .buffers import LUMA
+from .buffers import LUMA, _tmp
 
 
 @dataclass
@@ -233,12 +233,79 @@ def _t_table(z: float, max_dof: int = 256) -> np.ndarray:
     return out
 
 
-def _med3(a, b, c):
-    """Median of three arrays, elementwise, by min/max (exact, ties included)."""
-    return np.maximum(np.minimum(a, b), np.minimum(np.maximum(a, b), c))
+def _med3(a, b, c, out=None):
+    """Median of three arrays, elementwise, by min/max (exact, ties included);
+    into ``out`` when given (one scratch temporary)."""
+    if out is None:
+        return np.maximum(np.minimum(a, b), np.minimum(np.maximum(a, b), c))
+    t = np.maximum(a, b, out=_tmp("med3", out.shape, out.dtype))
+    np.minimum(t, c, out=t)
+    return np.maximum(np.minimum(a, b, out=out), t, out=out)
 
 
-def median3x3(x: np.ndarray, rows: int = 64) -> np.ndarray:
+def _median_band(src: np.ndarray, idx: np.ndarray, out: np.ndarray) -> np.ndarray:
+    """3x3 median, into ``out``, of the ``len(idx) - 2`` rows whose padded
+    rows (the rows above, themselves, below; edges replicated) are
+    ``src[idx]``; columns are edge-padded here.  The min/max network of
+    :func:`median3x3`, on this thread's scratch arrays (no allocation per
+    band)."""
+    w = src.shape[1]
+    r = len(idx) - 2
+    dt = src.dtype
+    pad = _tmp("m_pad", (r + 2, w + 2) + src.shape[2:], dt)
+    np.take(src, idx, axis=0, out=pad[:, 1:w + 1], mode="clip")  # idx valid: no buffering
+    pad[:, 0] = pad[:, 1]
+    pad[:, w + 1] = pad[:, w]
+    a, b, c = pad[:-2], pad[1:-1], pad[2:]
+    shp = a.shape
+    lo = np.minimum(a, b, out=_tmp("m_lo", shp, dt))
+    hi = np.maximum(a, b, out=_tmp("m_hi", shp, dt))
+    mid = np.minimum(hi, c, out=_tmp("m_mid", shp, dt))
+    np.maximum(hi, c, out=hi)
+    lo2 = np.minimum(lo, mid, out=_tmp("m_lo2", shp, dt))
+    np.maximum(lo, mid, out=mid)
+    lo = lo2
+    cs = out.shape
+    lo3 = np.maximum(lo[:, :w], lo[:, 1:w + 1], out=_tmp("m_lo3", cs, dt))
+    np.maximum(lo3, lo[:, 2:], out=lo3)
+    hi3 = np.minimum(hi[:, :w], hi[:, 1:w + 1], out=_tmp("m_hi3", cs, dt))
+    np.minimum(hi3, hi[:, 2:], out=hi3)
+    mid3 = _med3(mid[:, :w], mid[:, 1:w + 1], mid[:, 2:], out=_tmp("m_mid3", cs, dt))
+    return _med3(lo3, mid3, hi3, out=out)
+
+
+def _padded_rows(y0: int, y1: int, h: int, base: int = 0) -> np.ndarray:
+    """Row indices ``y0 - 1 .. y1`` clipped to ``[0, h)`` (edge replication),
+    minus ``base`` (the first row held by the array they index)."""
+    return np.clip(np.arange(y0 - 1, y1 + 1), 0, h - 1) - base
+
+
+#: pixels below which the guard and the median run inline (threads do not pay;
+#: measured: docs/notes/farm.md)
+INLINE_PIXELS = 65536
+#: pixels per row band of the guard and the median (at least MIN_ROWS rows):
+#: a band's scratch arrays are about 360 bytes a pixel per thread
+BAND_PIXELS = 32768
+MIN_ROWS = 8
+
+
+def _band_rows(rows, w: int) -> int:
+    """``rows``, or by default about :data:`BAND_PIXELS` pixels of width ``w``."""
+    if rows is not None:
+        return max(1, int(rows))
+    return max(MIN_ROWS, BAND_PIXELS // max(1, int(w)))
+
+
+def _bands(fn, h: int, w: int, rows: int) -> list:
+    """``fn((y0, y1))`` over row bands of ``rows`` rows, on the controller's
+    threads from :data:`INLINE_PIXELS` pixels on; results in band order."""
+    from . import parallel
+    if h * w < INLINE_PIXELS:
+        return [fn(b) for b in parallel.bands(h, rows)]
+    return parallel.run_bands(fn, h, rows)
+
+
+def median3x3(x: np.ndarray, rows: int | None = None) -> np.ndarray:
     """3x3 median of each channel of ``x`` (H, W, C), edges replicated.
 
     The same values as ``np.median`` over the 9 shifted planes of the
@@ -247,28 +314,51 @@ def median3x3(x: np.ndarray, rows: int = 64) -> np.ndarray:
     minima, the median of the three mids, the smallest of the three maxima)
     (Paeth, "Median finding on a 3x3 grid", Graphics Gems, 1990).  Only
     min/max, so the value is exact, ties included, and a NaN anywhere in the
-    window gives NaN, as ``np.median`` does.  Row blocks of ``rows`` keep
-    the planes in cache.
+    window gives NaN, as ``np.median`` does.  Row bands of ``rows`` rows
+    (default :func:`_band_rows`; each padded by its neighbour rows, no
+    whole-frame copy) keep the planes in cache and run on the controller's
+    threads: the same values for any thread count.
     """
     x = np.asarray(x)
     h, w = x.shape[:2]
-    pad = np.pad(x, ((1, 1), (1, 1)) + ((0, 0),) * (x.ndim - 2), mode="edge")
     out = np.empty_like(x)
-    for y0 in range(0, h, rows):
-        y1 = min(h, y0 + rows)
-        a, b, c = pad[y0:y1], pad[y0 + 1:y1 + 1], pad[y0 + 2:y1 + 2]
-        lo, hi = np.minimum(a, b), np.maximum(a, b)
-        mid = np.minimum(hi, c)
-        hi = np.maximum(hi, c)
-        lo, mid = np.minimum(lo, mid), np.maximum(lo, mid)
-        lo = np.maximum(np.maximum(lo[:, :w], lo[:, 1:w + 1]), lo[:, 2:])
-        hi = np.minimum(np.minimum(hi[:, :w], hi[:, 1:w + 1]), hi[:, 2:])
-        mid = _med3(mid[:, :w], mid[:, 1:w + 1], mid[:, 2:])
-        out[y0:y1] = _med3(lo, mid, hi)
+    if h * w == 0:
+        return out
+
+    def band(b):
+        y0, y1 = b
+        _median_band(x, _padded_rows(y0, y1, h), out[y0:y1])
+
+    _bands(band, h, w, _band_rows(rows, w))
     return out
 
 
-def consistency_guard(result: MethodResult, buf, z: float = 3.0) -> MethodResult:
+def _guard_rows(buf, y0: int, y1: int):
+    """Rows ``y0:y1`` of the guard's inputs, on this thread's scratch arrays:
+    (variance of the mean, known, standard error); known = a variance
+    estimate exists and mean and variance are finite, the standard error is
+    ``sqrt(max(var, 0))`` where known, else 0.  The same values as
+    :meth:`Buffers.variance_of_mean` and the whole-frame expressions."""
+    k, n = buf.k[y0:y1], buf.n[y0:y1]
+    m2 = buf.color.m2[y0:y1]
+    shp = m2.shape
+    ok = (k >= 2) & (n > 0)
+    den = np.subtract(k, 1.0, out=_tmp("g_den", k.shape))
+    np.multiply(den, n, out=den)
+    np.copyto(den, 1.0, where=~ok)
+    var = _tmp("g_var", shp)
+    var.fill(np.inf)
+    np.divide(m2, den[..., None], out=var, where=ok[..., None])
+    known = np.isfinite(var, out=_tmp("g_known", shp, bool))
+    known &= np.isfinite(buf.color.mean[y0:y1], out=_tmp("g_fin", shp, bool))
+    known &= (k >= 2)[..., None]
+    sd = np.maximum(var, 0.0, out=_tmp("g_sd", shp))
+    np.copyto(sd, 0.0, where=~known)
+    np.sqrt(sd, out=sd)
+    return var, known, sd
+
+
+def consistency_guard(result: MethodResult, buf, z: float = 3.0, rows: int | None = None) -> MethodResult:
     """Reject reconstructed pixels that contradict their own samples.
 
     A pixel whose reconstruction differs from its own sample mean by more than
@@ -288,27 +378,68 @@ def consistency_guard(result: MethodResult, buf, z: float = 3.0) -> MethodResult
     input are left to the method.  Zero-variance pixels must come back
     unchanged, which the guard enforces too.  ``z <= 0`` disables it.
 
+    Per pixel, so it runs over row bands of ``rows`` rows (default
+    :func:`_band_rows`) on the controller's
+    threads (each band computes the standard errors of one row more on each
+    side for the median): the same bits for any thread count.
+
     Returns a new MethodResult; ``info['guard_fraction']`` is the share of
     pixels replaced.
     """
     if z is None or z <= 0:
         return result
     mean = buf.color.mean
-    var = buf.variance_of_mean()
-    known = buf.has_variance[..., None] & np.isfinite(var) & np.isfinite(mean)
-    sd = np.sqrt(np.where(known, np.maximum(var, 0.0), 0.0))
-    # floor: the 3x3 median of the standard errors, so a pixel whose few
-    # subsets agreed by chance (e.g. all missed a rare light path) is judged
-    # with its neighbourhood's noise level, not with a near-zero one
-    sd = np.maximum(sd, median3x3(sd))
-    thr = t_quantile(z, np.maximum(buf.k - 1.0, 1.0))[..., None]
-    with np.errstate(invalid="ignore"):
-        off = np.abs(result.image - mean) > thr * sd
-    bad = (off & known).any(axis=-1) & known.all(axis=-1)
+    h, w = mean.shape[:2]
+    image = np.broadcast_to(result.image, mean.shape)
+    error = np.broadcast_to(result.error, (h, w))
+    _t_table(float(z))  # fill the cache once, before the bands read it
+    bad = np.zeros((h, w), bool)
+    rows = _band_rows(rows, w)
+
+    def judge(b):
+        y0, y1 = b
+        e0, e1 = max(0, y0 - 1), min(h, y1 + 1)
+        _, known, sd = _guard_rows(buf, e0, e1)
+        # floor: the 3x3 median of the standard errors, so a pixel whose few
+        # subsets agreed by chance (e.g. all missed a rare light path) is judged
+        # with its neighbourhood's noise level, not with a near-zero one
+        shp = (y1 - y0,) + sd.shape[1:]
+        med = _median_band(sd, _padded_rows(y0, y1, h, e0), _tmp("g_med", shp, sd.dtype))
+        sd = np.maximum(sd[y0 - e0:y1 - e0], med, out=med)
+        known = known[y0 - e0:y1 - e0]
+        thr = t_quantile(z, np.maximum(buf.k[y0:y1] - 1.0, 1.0))[..., None]
+        with np.errstate(invalid="ignore"):
+            d = np.subtract(image[y0:y1], mean[y0:y1], out=_tmp("g_d", shp))
+            np.abs(d, out=d)
+            off = np.greater(d, np.multiply(thr, sd, out=sd), out=_tmp("g_off", shp, bool))
+        off &= known
+        np.logical_and(off.any(axis=-1), known.all(axis=-1), out=bad[y0:y1])
+
+    _bands(judge, h, w, rows)
     if not bad.any():
         info = dict(result.info, guard_fraction=0.0)
         return replace(result, info=info)
-    image = np.where(bad[..., None], mean, result.image)
-    err = np.where(bad, np.where(known, var, 0.0).mean(axis=-1), result.error)
+    out_image = np.empty(mean.shape, np.result_type(mean, image))
+    out_err = np.empty((h, w), np.result_type(np.float64, error))
+
+    def fix(b):
+        y0, y1 = b
+        bb = bad[y0:y1]
+        oi, oe = out_image[y0:y1], out_err[y0:y1]
+        oi[...] = image[y0:y1]
+        np.copyto(oi, mean[y0:y1], where=bb[..., None])
+        oe[...] = error[y0:y1]
+        ys, xs = np.nonzero(bb)
+        if ys.size:  # the error of the replaced pixels: their variance of the mean
+            yy = ys + y0
+            k, n, m2 = buf.k[yy, xs], buf.n[yy, xs], buf.color.m2[yy, xs]
+            ok = (k >= 2) & (n > 0)
+            den = np.where(ok, (k - 1.0) * n, 1.0)[..., None]
+            var = np.full(m2.shape, np.inf)
+            np.divide(m2, den, out=var, where=ok[..., None])
+            known = (k >= 2)[..., None] & np.isfinite(var) & np.isfinite(mean[yy, xs])
+            oe[ys, xs] = np.where(known, var, 0.0).mean(axis=-1)
+
+    _bands(fix, h, w, rows)
     info = dict(result.info, guard_fraction=float(bad.mean()))
-    return replace(result, image=image, error=err, info=info)
+    return replace(result, image=out_image, error=out_err, info=info)

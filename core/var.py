@@ -113,6 +113,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from . import parallel
 from .buffers import Buffers, luminance
 from .method import MethodResult, param
 
@@ -168,19 +169,50 @@ def threshold(itr, params: Params) -> float:
     return float(min(1.0, max(0.0, 1.0 - max(0, itr - lo) / (hi - lo))))
 
 
+#: rows per band of the per-pixel priority (about this many pixels a band)
+BAND_PIXELS = 32768
+#: below this many pixels the priority and the threshold phase run inline
+#: (threads do not pay; measured: docs/notes/farm.md)
+INLINE_PIXELS = 65536
+
+
+def _rows(fn, h: int, w: int) -> list:
+    """``fn((r0, r1))`` over row bands (:func:`core.parallel.run_bands`) of
+    about :data:`BAND_PIXELS` pixels, inline below :data:`INLINE_PIXELS`;
+    results in band order.  Bands depend on the shape only."""
+    rows = max(1, BAND_PIXELS // max(1, w))
+    if h * w < INLINE_PIXELS:
+        return [fn(b) for b in parallel.bands(h, rows)]
+    return parallel.run_bands(fn, h, rows)
+
+
+def _pixel_variance_rows(buf: Buffers, r0: int, r1: int) -> np.ndarray:
+    """:func:`pixel_variance` of rows ``r0:r1``."""
+    s2 = buf.sample_variance(rows=(r0, r1))
+    fin = np.isfinite(s2)
+    ok = np.all(fin, axis=-1) & np.all(np.isfinite(buf.color.mean[r0:r1]), axis=-1)
+    v = np.maximum(np.where(fin, s2, 0.0), 0.0).mean(axis=-1)
+    return np.where(ok, v, np.inf)
+
+
 def pixel_variance(buf: Buffers) -> np.ndarray:
     """Eq. 11 of Schalk 2018: per-sample variance averaged over RGB.
 
     ``mean_c(M2_c / (k - 1))`` from the group statistics (see module docstring
-    for the correspondence with Welford's ``M2 / (spp - 1)``).
+    for the correspondence with Welford's ``M2 / (spp - 1)``).  Per pixel, over
+    row bands on the controller's threads (the same bits for any count).
 
     Returns (H, W) float64 >= 0; +inf where k < 2 or the statistics are not
     finite.
     """
-    s2 = buf.sample_variance()
-    ok = np.all(np.isfinite(s2), axis=-1) & np.all(np.isfinite(buf.color.mean), axis=-1)
-    v = np.maximum(np.where(np.isfinite(s2), s2, 0.0), 0.0).mean(axis=-1)
-    return np.where(ok, v, np.inf)
+    h, w = buf.shape
+    out = np.empty((h, w))
+
+    def band(b):
+        out[b[0]:b[1]] = _pixel_variance_rows(buf, *b)
+
+    _rows(band, h, w)
+    return out
 
 
 def relative_deviation(var: np.ndarray, lum: np.ndarray, params: Params) -> np.ndarray:
@@ -209,26 +241,57 @@ def relative_deviation(var: np.ndarray, lum: np.ndarray, params: Params) -> np.n
     return np.where(bad | ~np.isfinite(out), np.inf, out)
 
 
+def _priority_rows(buf: Buffers, params: Params, r0: int, r1: int) -> np.ndarray:
+    """:func:`pixel_priority` of rows ``r0:r1``."""
+    mean = buf.color.mean[r0:r1]
+    fin = np.isfinite(mean)
+    lum = luminance(np.where(fin, mean, 0.0))
+    lum = np.where(np.all(fin, axis=-1), lum, np.nan)
+    return relative_deviation(_pixel_variance_rows(buf, r0, r1), lum, params)
+
+
 def pixel_priority(buf: Buffers, params: Params) -> np.ndarray:
-    """Pvariance of every pixel (Eq. 11 then Eq. 12) from the Buffers; (H, W)."""
-    mean = buf.color.mean
-    lum = luminance(np.where(np.isfinite(mean), mean, 0.0))
-    lum = np.where(np.all(np.isfinite(mean), axis=-1), lum, np.nan)
-    return relative_deviation(pixel_variance(buf), lum, params)
+    """Pvariance of every pixel (Eq. 11 then Eq. 12) from the Buffers; (H, W).
+    Per pixel, over row bands on the controller's threads (the same bits for
+    any thread count)."""
+    h, w = buf.shape
+    out = np.empty((h, w))
+
+    def band(b):
+        out[b[0]:b[1]] = _priority_rows(buf, params, *b)
+
+    _rows(band, h, w)
+    return out
+
+
+#: bytes per hashed piece of :func:`_priority_key` (shape only)
+HASH_BYTES = 1 << 22
+
+
+def _digest(a: np.ndarray) -> bytes:
+    """SHA-256 over the SHA-256 digests of ``a``'s consecutive pieces of
+    :data:`HASH_BYTES` bytes (C order): a content hash whose pieces hash on the
+    controller's threads (hashlib releases the GIL); the pieces depend on the
+    size only, so the digest does not depend on the thread count."""
+    flat = memoryview(np.ascontiguousarray(a).reshape(-1)).cast("B")
+    n = len(flat)
+    pieces = parallel.bands(n, HASH_BYTES)
+    work = lambda p: hashlib.sha256(flat[p[0]:p[1]]).digest()
+    parts = parallel.map_ordered(work, pieces) if n >= 4 * HASH_BYTES else [work(p) for p in pieces]
+    return hashlib.sha256(b"".join(parts)).digest()
 
 
 def _priority_key(buf: Buffers, params: Params) -> tuple:
-    """What :func:`pixel_priority` depends on: the exact bytes (SHA-256),
-    dtype and shape of ``buf.color.mean``, ``buf.color.m2`` and ``buf.k``,
-    and the two Eq. 12 parameters.  Contents, not identities: the loop merges
-    renders into the same arrays in place."""
-    h = hashlib.sha256()
-    parts = []
+    """What :func:`pixel_priority` depends on: the exact bytes (a SHA-256
+    tree, :func:`_digest`), dtype and shape of ``buf.color.mean``,
+    ``buf.color.m2`` and ``buf.k``, and the two Eq. 12 parameters.  Contents,
+    not identities: the loop merges renders into the same arrays in place."""
+    parts, digests = [], []
     for a in (buf.color.mean, buf.color.m2, buf.k):
-        a = np.ascontiguousarray(a)
+        a = np.asarray(a)
         parts.append((a.dtype.str, a.shape))
-        h.update(memoryview(a).cast("B"))
-    return (tuple(parts), h.digest(), float(params.epsilon), bool(params.epsilon_inside_sqrt))
+        digests.append(_digest(a))
+    return (tuple(parts), tuple(digests), float(params.epsilon), bool(params.epsilon_inside_sqrt))
 
 
 #: single entry (key, read-only priority): the loop's secant steps call the
@@ -405,30 +468,65 @@ def _next_samples(buf: Buffers, params: Params, state: dict, remaining: int,
     return out.reshape(h, w)
 
 
+#: pixels per piece of the threshold phase's flat arrays (shape only)
+FLAT_PIECE = 1 << 18
+
+
 def threshold_phase(out, spp, pv, remaining, itr, cursor, params: Params, wait=None):
     """Hand out up to ``remaining`` samples of Algorithm 1's threshold phase
     (``itr < max_spp``: a pixel is ready if ``Pvariance >= tau`` or ``Pspp <
     min_spp``), in place into ``out`` and ``spp`` (flat arrays), continuing at
     scanline ``cursor`` of iteration ``itr``; ``pv`` (flat) is Pvariance,
     frozen for the call.  Pixels in ``wait`` (flat bool, Algorithm 2) are never
-    ready.  Returns (remaining, itr, cursor)."""
+    ready.  Returns (remaining, itr, cursor).
+
+    Each iteration marks the ready pixels and counts them per piece of
+    :data:`FLAT_PIECE` pixels on the controller's threads, then adds them (or,
+    when the budget ends inside the iteration, the first ``remaining`` in
+    scanline order): integer counts, so the same map for any thread count."""
     lo, hi = int(params.min_spp), int(params.max_spp)
+    npx = int(out.size)
+    pieces = parallel.bands(npx, FLAT_PIECE)
+    ready = np.empty(npx, bool)
+    many = npx >= INLINE_PIXELS
+    run = (lambda fn: parallel.map_ordered(fn, pieces)) if many else (lambda fn: [fn(p) for p in pieces])
+
+    def mark(p, tau, cursor):
+        a, b = p
+        r = ready[a:b]
+        np.greater_equal(pv[a:b], tau, out=r)
+        r |= spp[a:b] < lo
+        if wait is not None:
+            r &= ~wait[a:b]
+        if cursor > a:
+            r[:min(cursor, b) - a] = False
+        return int(np.count_nonzero(r))
+
+    def add(p):
+        a, b = p
+        r = ready[a:b]
+        out[a:b] += r
+        spp[a:b] += r
+
     while remaining > 0 and itr < hi:
         tau = threshold(itr, params)
-        ready = pv >= tau
-        ready |= spp < lo
-        if wait is not None:
-            ready &= ~wait
-        if cursor:
-            ready[:cursor] = False
-        cnt = int(np.count_nonzero(ready))
+        counts = run(lambda p: mark(p, tau, cursor))
+        cnt = sum(counts)
         if cnt > remaining:                 # budget ends inside this iteration
-            idx = np.flatnonzero(ready)[:remaining]
+            idx, need = [], remaining
+            for (a, b), c in zip(pieces, counts):
+                if c == 0:
+                    continue
+                got = a + np.flatnonzero(ready[a:b])[:need]
+                idx.append(got)
+                need -= len(got)
+                if need <= 0:
+                    break
+            idx = np.concatenate(idx)
             out[idx] += 1
             spp[idx] += 1
             return 0, itr, int(idx[-1]) + 1
-        out += ready
-        spp += ready
+        run(add)
         remaining -= cnt
         itr, cursor = itr + 1, 0
     return remaining, itr, cursor

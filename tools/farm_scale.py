@@ -6,6 +6,7 @@ speed-up of one frame over W workers (docs/notes/farm.md).
     .venv/bin/python tools/farm_scale.py cycles          # Cycles task cost local vs on a worker
     .venv/bin/python tools/farm_scale.py plan --method var --width 3840 --height 2160
     .venv/bin/python tools/farm_scale.py project         # from the JSON files the others wrote
+    .venv/bin/python tools/farm_scale.py project --controller-threads 1 2 8 16
 
 Each command writes its figures to ``bench_out/farm/<command>*.json`` and prints
 them.  ``overhead`` runs tasks of a known cost (a sleep: the render happens
@@ -14,6 +15,14 @@ elsewhere) that return buffers of a region's size through the same calls as
 ``plan`` runs ``AdaptiveRun`` with a synthetic executor (no rendering) and
 records every iteration's tasks and the controller's own time (adapt: sample
 map and planner; reconstruct when the method's sampler uses it).
+
+``merge`` and ``plan`` run on the controller's thread count
+(``$CYCLES_ADAPTIVE_THREADS``, ``core.parallel``), record it and write
+``<name>_t<threads>.json``.  ``project --controller-threads C ...`` projects
+the serial controller part on a C-core controller from the 1- and 2-thread
+files, or from ``--fractions`` (a projection, not a measurement; see
+:func:`amdahl`).  Without ``cycles_<scene>.json`` / ``overhead_w2.json`` pass
+``--cycles-cost`` and ``--chunk-overhead``.
 """
 import argparse
 import json
@@ -28,7 +37,7 @@ from launch import load_package  # noqa: E402
 load_package()
 import numpy as np  # noqa: E402
 
-from cycles_adaptive.core import methods  # noqa: E402
+from cycles_adaptive.core import buffers as core_buffers, methods, parallel  # noqa: E402
 from cycles_adaptive.core.buffers import Buffers  # noqa: E402
 from cycles_adaptive.core.pipeline import AdaptiveRun, Options, merge_render  # noqa: E402
 from cycles_adaptive.core.regions import RegionTask  # noqa: E402
@@ -92,6 +101,10 @@ def overhead(args):
 
 # -------------------------------------------------------------------- merge
 def merge(args):
+    """``merge_render`` into 4K Buffers (lp's passes): the first whole-frame
+    merge (page faults), a warm one, then regions of 16^2 .. 1024^2; regions
+    from ``core.buffers.INLINE_PIXELS`` pixels on run over row bands on the
+    controller's threads."""
     w, h = args.width, args.height
     buf = Buffers.empty(h, w, tuple(LP_CHANNELS))
     rng = np.random.default_rng(0)
@@ -99,14 +112,15 @@ def merge(args):
     full = RegionTask(0, 0, w, h, 1)
     color = rng.random((h, w, 4)).astype(np.float32).astype(np.float64)
     feats = {k: rng.random((h, w, c)) for k, c in LP_CHANNELS.items() if k != "alpha"}
-    t0 = time.perf_counter()
-    merge_render(buf, full, color, feats)
-    rows.append({"side": "full", "pixels": w * h, "ms_per_task": 1000 * (time.perf_counter() - t0),
-                 "mpix_per_s": w * h / 1e6 / (time.perf_counter() - t0)})
-    for side in (16, 32, 64, 128, 256):
+    for side in ("full", "full_warm"):
+        t0 = time.perf_counter()
+        merge_render(buf, full, color, feats)
+        dt = time.perf_counter() - t0
+        rows.append({"side": side, "pixels": w * h, "ms_per_task": 1000 * dt, "mpix_per_s": w * h / 1e6 / dt})
+    for side in (s for s in (16, 32, 64, 128, 256, 512, 1024) if s < min(w, h)):
         c = color[:side, :side].copy()
         fs = {k: v[:side, :side].copy() for k, v in feats.items()}
-        n = max(20, int(2e7 // (side * side * 50)))
+        n = max(5, int(2e7 // (side * side * 50)))
         t0 = time.perf_counter()
         for i in range(n):
             x0 = (i * side) % (w - side)
@@ -115,7 +129,8 @@ def merge(args):
         dt = (time.perf_counter() - t0) / n
         rows.append({"side": side, "pixels": side * side, "ms_per_task": 1000 * dt,
                      "mpix_per_s": side * side / 1e6 / dt})
-    _save("merge", rows)
+    _save(f"merge_t{parallel.threads()}", {"threads": parallel.threads(), "width": w, "height": h,
+                                           "inline_pixels": getattr(core_buffers, "INLINE_PIXELS", None), "rows": rows})
 
 
 # ------------------------------------------------------------------- cycles
@@ -189,6 +204,15 @@ def plan(args):
     opts = Options(method=args.method, spp=args.spp, seed=0)
     ex = SyntheticExecutor(args.width, args.height, tuple(m.PASSES))
     run = AdaptiveRun(ex, opts)
+    merged = [0.0]
+    merge_one = run._merge
+
+    def timed_merge(*a):  # the controller's merges, timed apart from adapt
+        t = time.perf_counter()
+        merge_one(*a)
+        merged[0] += time.perf_counter() - t
+    run._merge = timed_merge
+    start = time.perf_counter()
     seen, adapt0, stages = 0, 0.0, []
     current = {"iteration": 0, "adapt_s": 0.0}  # the initial pass: no controller time before it
 
@@ -208,9 +232,12 @@ def plan(args):
     t0 = time.perf_counter()
     run.reconstruct()
     rec = time.perf_counter() - t0
-    _save(f"plan_{args.method}_{args.width}x{args.height}",
+    wall = time.perf_counter() - start
+    _save(f"plan_{args.method}_{args.width}x{args.height}_t{parallel.threads()}",
           {"method": args.method, "width": args.width, "height": args.height, "spp": args.spp,
-           "stages": stage_tasks, "reconstruct_s": rec, "uses_result": bool(m.SAMPLER_USES_RESULT)})
+           "threads": parallel.threads(), "stages": stage_tasks, "reconstruct_s": rec,
+           "adapt_s": sum(st["adapt_s"] for st in stage_tasks), "merge_s": merged[0], "wall_s": wall,
+           "uses_result": bool(m.SAMPLER_USES_RESULT)})
 
 
 # ------------------------------------------------------------------ project
@@ -225,12 +252,12 @@ def makespan(costs, workers):
     return max(free)
 
 
-def stage_seconds(tasks, workers, a, b, o_chunk, merge_fixed, merge_px, scale):
+def stage_seconds(tasks, workers, a, b, o_chunk, merge_cost, scale):
     """One stage (the initial pass or an iteration) of a frame on ``workers``:
     tasks cut into tiles and chunks as ``DaskExecutor.render_many`` does
     (4 chunks per worker), rendered at ``a + b * pixel-samples`` per tile,
     ``o_chunk`` scheduler overhead per chunk; the controller merges each task
-    (``merge_fixed + merge_px * pixels``) as it completes, so the stage lasts
+    (``merge_cost(pixels)`` seconds) as it completes, so the stage lasts
     the longer of rendering and merging plus the last task's merge.
     ``scale``: pixel factor from the planned frame to the projected one."""
     from cycles_adaptive.operators import farm
@@ -251,45 +278,118 @@ def stage_seconds(tasks, workers, a, b, o_chunk, merge_fixed, merge_px, scale):
                                       + 1, [len(tiles)]]).clip(0, len(tiles)))
     chunks = [costs[i:j].sum() + o_chunk for i, j in zip(edges[:-1], edges[1:]) if j > i]
     render = makespan(chunks, workers)
-    merges = [merge_fixed + merge_px * px for px, _ in scaled]
+    merges = [merge_cost(px) for px, _ in scaled]
     return max(render, sum(merges)) + merges[-1], render, sum(merges) + merges[-1]
 
 
+def amdahl(t1, t2, c):
+    """Projected time on ``c`` threads from the measured times on 1 and 2:
+    Amdahl's law ``T(c) = T1 (1 - f + f / c)`` with the parallel fraction
+    measured from ``T2 = T1 (1 - f / 2)``, i.e. ``f = 2 (1 - T2 / T1)``,
+    clipped to [0, 1].  Returns (T(c), f).  A projection: it assumes the
+    parallel part keeps scaling (no memory-bandwidth limit, free cores)."""
+    f = float(np.clip(2.0 * (1.0 - t2 / t1), 0.0, 1.0)) if t1 > 0 else 0.0
+    return t1 * (1.0 - f + f / c), f
+
+
+def _load(name, threads=None):
+    """``<name>_t<threads>.json``, else ``<name>.json`` (files from before
+    the thread count was recorded: one thread); None when neither exists."""
+    for fn in ([f"{name}_t{threads}"] if threads else []) + [name]:
+        path = os.path.join(OUT, fn + ".json")
+        if os.path.exists(path):
+            return json.load(open(path))
+    return None
+
+
+def _merge_fit(mg):
+    """(fixed, per-pixel) seconds of ``merge_render``: least squares over the
+    regions run inline (below ``inline_pixels``) and over the banded ones
+    (the regions from it on and the warm whole frame); returns (inline fit,
+    banded fit, inline_pixels)."""
+    rows = mg["rows"] if isinstance(mg, dict) else mg
+    inline = (mg.get("inline_pixels") if isinstance(mg, dict) else None) or 1 << 62
+    def fit(sel):
+        px = np.array([r["pixels"] for r in sel], float)
+        sec = np.array([r["ms_per_task"] for r in sel]) / 1000
+        if len(sel) == 1:
+            return 0.0, float(sec[0] / px[0])
+        (f0, f1), *_ = np.linalg.lstsq(np.stack([np.ones_like(px), px], 1), sec, rcond=None)
+        return float(f0), float(f1)
+    small = [r for r in rows if r["side"] not in ("full", "full_warm") and r["pixels"] < inline]
+    big = [r for r in rows if r["side"] != "full" and r["pixels"] >= inline]
+    return fit(small), (fit(big) if big else fit(small)), inline
+
+
 def project(args):
-    cyc = json.load(open(os.path.join(OUT, f"cycles_{args.scene}.json")))
-    ov = json.load(open(os.path.join(OUT, "overhead_w2.json")))
-    mg = json.load(open(os.path.join(OUT, "merge.json")))
-    # scheduler overhead per Dask task: the unchunked zero-cost runs (one Dask task per region task)
-    o_chunk = min(r["overhead_ms_per_task"] for r in ov if r["cost_s"] == 0 and r["chunks"] == r["tasks"]) / 1000
-    regional = [r for r in mg if r["side"] != "full"]
-    px = np.array([r["pixels"] for r in regional], float)
-    sec = np.array([r["ms_per_task"] for r in regional]) / 1000
-    (m0, m1), *_ = np.linalg.lstsq(np.stack([np.ones_like(px), px], 1), sec, rcond=None)
-    out = {}
+    cyc = _load(f"cycles_{args.scene}")
+    ov = _load("overhead_w2")
+    if args.cycles_cost:
+        a_fixed, b_ps = args.cycles_cost
+    elif cyc is not None:
+        a_fixed, b_ps = cyc["fixed_s"], cyc["per_pixel_sample_s"]
+    else:
+        raise SystemExit(f"no {OUT}/cycles_{args.scene}.json: run `cycles` or pass --cycles-cost A B")
+    if args.chunk_overhead is not None:
+        o_chunk = args.chunk_overhead
+    elif ov is not None:
+        # scheduler overhead per Dask task: the unchunked zero-cost runs (one Dask task per region task)
+        o_chunk = min(r["overhead_ms_per_task"] for r in ov
+                      if r["cost_s"] == 0 and r["chunks"] == r["tasks"]) / 1000
+    else:
+        raise SystemExit(f"no {OUT}/overhead_w2.json: run `overhead` or pass --chunk-overhead S")
+    mg1, mg2 = _load("merge", 1), _load("merge", 2)
+    (m0, m1), (b0, b1), inline = _merge_fit(mg1)
+    b1_2 = _merge_fit(mg2)[1][1] if mg2 is not None else b1
+    out, fractions = {}, {}
     for name in args.plans:
-        p = json.load(open(os.path.join(OUT, name + ".json")))
-        scale = 3840 * 2160 / (p["width"] * p["height"])
-        for factor in args.scene_factors:
-            a, b = cyc["fixed_s"], cyc["per_pixel_sample_s"] * factor
-            rows = {}
-            for W in (1, 4, 16, 64):
-                ctrl = p["reconstruct_s"] * scale  # the final reconstruction
-                render = merge = stages = 0.0
-                for st in p["stages"]:
-                    t, r, m = stage_seconds(st["tasks"], W, a, b, o_chunk, m0, m1, scale)
-                    stages += t
-                    render += r
-                    merge += m
-                    ctrl += st["adapt_s"] * scale  # adapt already holds per-iteration reconstructions
-                rows[W] = {"seconds": stages + ctrl, "render_s": render, "merge_s": merge, "controller_s": ctrl}
-            t1 = rows[1]["seconds"]
-            out[f"{name} x{factor:g}"] = {
-                str(W): {"seconds": round(r["seconds"], 1), "speedup": round(t1 / r["seconds"], 2),
-                         "render_s": round(r["render_s"], 1), "merge_s": round(r["merge_s"], 1),
-                         "adapt_reconstruct_s": round(r["controller_s"], 1)} for W, r in rows.items()}
-    _save("project", {"o_chunk_s": o_chunk, "merge_fixed_s": m0, "merge_s_per_pixel": m1,
-                      "cycles_fixed_s": cyc["fixed_s"], "cycles_s_per_pixel_sample": cyc["per_pixel_sample_s"],
-                      "plans": out})
+        p1, p2 = _load(name, 1), _load(name, 2)
+        p2 = p2 if p2 is not None else p1
+        scale = 3840 * 2160 / (p1["width"] * p1["height"])
+        a1 = sum(st["adapt_s"] for st in p1["stages"])
+        a2 = sum(st["adapt_s"] for st in p2["stages"])
+        for c in args.controller_threads:
+            _, fa = amdahl(a1, a2, c)
+            rec_c, fr = amdahl(p1["reconstruct_s"], p2["reconstruct_s"], c)
+            mpx_c, fm = amdahl(b1, b1_2, c)
+            if args.fractions:  # given parallel fractions instead of the measured ones
+                fa, fr, fm = args.fractions
+                rec_c = p1["reconstruct_s"] * (1.0 - fr + fr / c)
+                mpx_c = b1 * (1.0 - fm + fm / c)
+            fractions[name] = {"adapt": round(fa, 3), "reconstruct": round(fr, 3), "merge_per_pixel": round(fm, 3),
+                               "adapt_s_t1": round(a1, 2), "adapt_s_t2": round(a2, 2),
+                               "reconstruct_s_t1": round(p1["reconstruct_s"], 2),
+                               "reconstruct_s_t2": round(p2["reconstruct_s"], 2),
+                               "merge_us_per_px_t1": round(1e6 * b1, 4), "merge_us_per_px_t2": round(1e6 * b1_2, 4)}
+            for factor in args.scene_factors:
+                a, b = a_fixed, b_ps * factor
+                rows = {}
+                for W in args.workers:
+                    ctrl = rec_c * scale  # the final reconstruction
+                    render = merge = stages = 0.0
+                    for st in p1["stages"]:
+                        mf = lambda px: (m0 + m1 * px) if px < inline else (b0 + mpx_c * px)
+                        t, r, m = stage_seconds(st["tasks"], W, a, b, o_chunk, mf, scale)
+                        stages += t
+                        render += r
+                        merge += m
+                        ctrl += st["adapt_s"] * (1.0 - fa + fa / c) * scale  # adapt holds per-iteration reconstructions
+                    rows[W] = {"seconds": stages + ctrl, "render_s": render, "merge_s": merge, "controller_s": ctrl}
+                t1 = rows[args.workers[0]]["seconds"]
+                serial = rows[args.workers[0]]["controller_s"] + rows[args.workers[0]]["merge_s"]
+                out[f"{name} x{factor:g} C={c}"] = {
+                    "barrier_W": round(rows[args.workers[0]]["render_s"] * args.workers[0] / serial, 1),
+                    "serial_s": round(serial, 1),
+                    **{str(W): {"seconds": round(r["seconds"], 1), "speedup": round(t1 / r["seconds"], 2),
+                                "render_s": round(r["render_s"], 1), "merge_s": round(r["merge_s"], 1),
+                                "adapt_reconstruct_s": round(r["controller_s"], 1)} for W, r in rows.items()}}
+    source = ("given parallel fractions (--fractions)" if args.fractions
+              else "parallel fractions measured from the 1- and 2-thread files")
+    _save("project", {"projection": f"Amdahl on C controller cores, {source}; not measured on C cores",
+                      "o_chunk_s": o_chunk, "merge_fixed_s": m0, "merge_s_per_pixel": m1,
+                      "merge_banded_fixed_s": b0, "merge_banded_s_per_pixel": b1, "inline_pixels": inline,
+                      "cycles_fixed_s": a_fixed, "cycles_s_per_pixel_sample": b_ps,
+                      "parallel_fractions": fractions, "plans": out})
 
 
 def main(argv=None):
@@ -310,7 +410,16 @@ def main(argv=None):
     p.add_argument("--height", type=int, default=2160)
     j = sub.add_parser("project")
     j.add_argument("--scene", default="cornell")
-    j.add_argument("--plans", nargs="+", default=["plan_var_3840x2160"])
+    j.add_argument("--plans", nargs="+", default=["plan_var_3840x2160"],
+                   help="plan names without the _t<threads> suffix")
+    j.add_argument("--controller-threads", nargs="+", type=int, default=[1],
+                   help="controller core counts C to project (Amdahl from the 1- and 2-thread files)")
+    j.add_argument("--workers", nargs="+", type=int, default=[1, 4, 8, 16, 64])
+    j.add_argument("--fractions", nargs=3, type=float, metavar=("ADAPT", "RECONSTRUCT", "MERGE"),
+                   help="parallel fractions to project with instead of the measured 1-/2-thread ones")
+    j.add_argument("--cycles-cost", nargs=2, type=float, metavar=("FIXED_S", "S_PER_PIXEL_SAMPLE"),
+                   help="Cycles task cost instead of cycles_<scene>.json")
+    j.add_argument("--chunk-overhead", type=float, help="seconds per Dask chunk instead of overhead_w2.json")
     j.add_argument("--scene-factors", nargs="+", type=float, default=[1.0, 10.0, 100.0],
                    help="multiples of the measured per-pixel-sample cost (heavier production scenes)")
     args = ap.parse_args(argv)
