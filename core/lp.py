@@ -33,6 +33,14 @@ Equations (Moon et al. 2015) and where they are computed:
 
 (Eq. 6, the temporal extension of Sec. 6, is ``core/temporal.py``.)
 
+Threads (:mod:`core.parallel`): the chunks of centres of a pass, the mean
+offsets' re-blend, the input packing and the per-pixel passes run as pieces
+on the shared pool.  The pieces are cut by the shape and parameters only;
+each chunk has its own workspace and returns its sums over its band of rows,
+which are added one chunk at a time in chunk order (:func:`core.parallel.ordered_reduce`),
+so the output is bit-identical for any thread count and to the serial order.
+Frames below ``THREAD_MIN_PIXELS`` run inline.
+
 Choices where the paper leaves room (each also stated where it is made):
 
 * **Error estimate against the truth.**  Eq. 2 defines the prediction error
@@ -111,10 +119,12 @@ Measurements and design notes: docs/notes/lp.md
 """
 from __future__ import annotations
 
+import threading
 from dataclasses import dataclass
 
 import numpy as np
 
+from . import parallel
 from .buffers import Buffers
 from .lp_solve import Design, ring_fits, ring_layout
 from .method import MethodResult, allocate, gain_exponent, param, params_from_dict
@@ -319,47 +329,61 @@ class _Frame:
         centre = np.zeros((len(groups), self.hp, self.wp))
         inner = planes[:, r:r + h, r:r + w]
         noise = np.zeros((len(groups), h, w))
-        fvalid = np.ones((h, w), bool)
-        with np.errstate(invalid="ignore"):
-            for gi, (g, (lo, hi)) in enumerate(zip(names, groups)):
-                f = np.asarray(features[g], np.float64).reshape(h, w, -1)
-                if f.shape[-1] < hi - lo:
-                    raise ValueError(f"feature {g!r} needs {hi - lo} channels, got {f.shape[-1]}")
-                f = np.moveaxis(f[..., :hi - lo], -1, 0)
-                ok = (np.abs(f) < _HUGE).all(axis=0)             # finite, squares stay finite
-                fvalid &= ok
-                np.copyto(inner[lo - 2:hi - 2], f, where=ok)    # (no full-size temporaries)
-                fv = feature_var.get(g) if feature_var else None
-                if fv is not None:
-                    fv = np.asarray(fv, np.float64).reshape(h, w, -1)[..., :hi - lo]
-                    noise[gi] = np.where((fv > 0) & (fv < _HUGE), fv, 0.0).sum(axis=-1)
-        inner[:nf] *= fvalid
-        color = np.moveaxis(np.asarray(color, np.float64), -1, 0)
-        nn = np.ones((h, w)) if n is None else np.broadcast_to(np.asarray(n, np.float64), (h, w))
-        nn = np.where(np.isfinite(nn), nn, 0.0)
-        with np.errstate(invalid="ignore"):
-            cvalid = (np.abs(color) < _HUGE).all(axis=0) & (nn > 0)
-        np.copyto(inner[self.c_y:self.c_y + 3], color, where=cvalid)
-        var = np.moveaxis(np.broadcast_to(np.asarray(color_var, np.float64), (h, w, 3)), -1, 0)
-        with np.errstate(invalid="ignore"):
-            known = (var >= 0) & (var < _HUGE * _HUGE) & cvalid
-        inner[self.c_v:self.c_v + 3] = np.inf
-        np.copyto(inner[self.c_v:self.c_v + 3], var, where=known)
-        del known
-        inner[self.c_w] = cvalid & fvalid
-        inner[self.c_f] = fvalid
-        # log max(n, 1) (0 in the padding): all that Sec. 5.2's n_i^(-4/(d_c+4)) needs
-        self.logn = np.zeros((self.hp, self.wp))
-        self.logn[r:r + h, r:r + w] = np.log(np.maximum(nn, 1.0))
-        self.logn = self.logn.ravel()
+        logn = np.zeros((self.hp, self.wp))
+        f_in, fv_in = [], []
+        for g, (lo, hi) in zip(names, groups):
+            f = np.asarray(features[g]).reshape(h, w, -1)       # converted band by band
+            if f.shape[-1] < hi - lo:
+                raise ValueError(f"feature {g!r} needs {hi - lo} channels, got {f.shape[-1]}")
+            f_in.append(f)
+            fv = feature_var.get(g) if feature_var else None
+            fv_in.append(None if fv is None else np.asarray(fv).reshape(h, w, -1))
+        color = np.asarray(color)
+        n_in = None if n is None else np.broadcast_to(np.asarray(n), (h, w))
+        var_in = np.broadcast_to(np.asarray(color_var), (h, w, 3))
+
+        def band(rows):
+            # every plane of rows y0 .. y1 (per pixel: bands on the pool, no full-size temporaries)
+            y0, y1 = rows
+            ins = inner[:, y0:y1]
+            fvalid = np.ones((y1 - y0, w), bool)
+            with np.errstate(invalid="ignore"):
+                for gi, ((lo, hi), f, fv) in enumerate(zip(groups, f_in, fv_in)):
+                    f = np.moveaxis(np.asarray(f[y0:y1, :, :hi - lo], np.float64), -1, 0)
+                    ok = (np.abs(f) < _HUGE).all(axis=0)         # finite, squares stay finite
+                    fvalid &= ok
+                    np.copyto(ins[lo - 2:hi - 2], f, where=ok)
+                    if fv is not None:
+                        fv = np.asarray(fv[y0:y1, :, :hi - lo], np.float64)
+                        noise[gi, y0:y1] = np.where((fv > 0) & (fv < _HUGE), fv, 0.0).sum(axis=-1)
+            ins[:nf] *= fvalid
+            col = np.moveaxis(np.asarray(color[y0:y1], np.float64), -1, 0)
+            nn = np.ones((y1 - y0, w)) if n_in is None else np.asarray(n_in[y0:y1], np.float64)
+            nn = np.where(np.isfinite(nn), nn, 0.0)
+            with np.errstate(invalid="ignore"):
+                cvalid = (np.abs(col) < _HUGE).all(axis=0) & (nn > 0)
+            np.copyto(ins[self.c_y:self.c_y + 3], col, where=cvalid)
+            var = np.moveaxis(np.asarray(var_in[y0:y1], np.float64), -1, 0)
+            with np.errstate(invalid="ignore"):
+                known = (var >= 0) & (var < _HUGE * _HUGE) & cvalid
+            ins[self.c_v:self.c_v + 3] = np.inf
+            np.copyto(ins[self.c_v:self.c_v + 3], var, where=known)
+            ins[self.c_w] = cvalid & fvalid
+            ins[self.c_f] = fvalid
+            # log max(n, 1) (0 in the padding): all that Sec. 5.2's n_i^(-4/(d_c+4)) needs
+            logn[r + y0:r + y1, r:r + w] = np.log(np.maximum(nn, 1.0))
+            noise[:, y0:y1] *= fvalid
+
+        parallel.run_bands(band, h, _BAND_ROWS, THREAD_MIN_PIXELS, w)
+        self.logn = logn.ravel()
         # the typical variance around each pixel: Sec. 5.1's coverage test and xi(k(0))
         # (float32: a threshold, 12 bytes per pixel)
         typical = np.zeros((3, self.hp, self.wp), np.float32)
         _median3(inner[self.c_v:self.c_v + 3], out=typical[:, r:r + h, r:r + w])
         self.var_typical = typical.reshape(3, -1)
-        for gi in range(len(groups)):
-            noise[gi] *= fvalid
-            _box_sum(np.pad(noise[gi], r), r, out=centre[gi])
+        # the feature-noise window sums, one group per piece
+        parallel.map_ordered(lambda gi: _box_sum(np.pad(noise[gi], r), r, out=centre[gi]), range(len(groups)),
+                             min_items=2 if h * w >= THREAD_MIN_PIXELS else len(groups) + 1)
         self.planes = planes.reshape(self.ncol, self.hp * self.wp)
         self.centre = centre.reshape(len(centre), self.hp * self.wp)
 
@@ -373,14 +397,19 @@ class _Frame:
 def _median3(planes: np.ndarray, out: np.ndarray, band: int = 64) -> np.ndarray:
     """Median over each pixel's 3x3 neighbourhood (edges replicated) of
     (C, H, W) planes into ``out`` (C, H, W), channel by channel and in bands
-    of rows (bounded temporaries); +inf entries (unknown) sort last."""
+    of rows (bounded temporaries, on :mod:`core.parallel`'s pool: every band
+    writes only its own rows); +inf entries (unknown) sort last."""
     c, h, w = planes.shape
-    for i in range(c):
-        pad = np.pad(planes[i], 1, mode="edge")
-        for y0 in range(0, h, band):
-            y1 = min(y0 + band, h)
-            stack = np.stack([pad[y0 + a:y1 + a, b:b + w] for a in range(3) for b in range(3)])
-            out[i, y0:y1] = np.median(stack, axis=0)
+
+    def piece(job):
+        i, (y0, y1) = job
+        rows = np.clip(np.arange(y0 - 1, y1 + 1), 0, h - 1)
+        pad = np.pad(planes[i, rows], ((0, 0), (1, 1)), mode="edge")
+        stack = np.stack([pad[a:a + y1 - y0, b:b + w] for a in range(3) for b in range(3)])
+        out[i, y0:y1] = np.median(stack, axis=0)
+
+    jobs = [(i, b) for i in range(c) for b in parallel.bands(h, band)]
+    parallel.map_ordered(piece, jobs, min_items=2 if h * w >= THREAD_MIN_PIXELS else len(jobs) + 1)
     return out
 
 
@@ -450,6 +479,30 @@ class _Workspace:
                 "mom": self.mom[:msize].reshape(self.r1, n, q, q)}
 
 
+class _WorkspacePool:
+    """:class:`_Workspace` s for the pieces running at the same time: a piece
+    takes one (a new one when none is free) and gives it back, so there are
+    at most as many as threads running pieces, and all go with the pool."""
+
+    def __init__(self, *args):
+        self.args, self.free, self.lock = args, [], threading.Lock()
+
+    def take(self) -> _Workspace:
+        with self.lock:
+            if self.free:
+                return self.free.pop()
+        return _Workspace(*self.args)
+
+    def give(self, ws: _Workspace) -> None:
+        with self.lock:
+            self.free.append(ws)
+
+
+#: frames below this many pixels are reconstructed on the calling thread only
+#: (measured: docs/notes/lp.md, "Threads")
+THREAD_MIN_PIXELS = 1 << 16
+
+
 # ------------------------------------------------------------------------ the models
 def fit_centres(frame: _Frame, centre_flat: np.ndarray, params: Params, keep_models: bool = False,
                 ws: _Workspace | None = None, all_rings: bool = False) -> dict:
@@ -516,7 +569,8 @@ def fit_centres(frame: _Frame, centre_flat: np.ndarray, params: Params, keep_mod
         grad[sel] = np.matmul(bg[:, :, 1:], design.t)                    # slopes in raw x - x_c
         pred[sel] = np.maximum(design.predict(bg), lower[grp][:, :, None])   # Eq. 1
         if keep_models:
-            pinv[sel, :, :p, :p] = np.linalg.inv(gram)
+            with parallel.LAPACK_LOCK:                 # see parallel.LAPACK_LOCK
+                pinv[sel, :, :p, :p] = np.linalg.inv(gram)
         if all_rings:
             for r in range(radius + 1):
                 rings[r, sel] = np.maximum(design.predict(np.swapaxes(fits.beta[r], 1, 2)),
@@ -770,7 +824,9 @@ def fit(color: np.ndarray, color_var: np.ndarray, features: dict, feature_var: d
     at a time (:class:`core.lp_solve.Design`), centres are sorted by model
     size so each size group is a slice, chunks are limited to a band of rows
     so their scatter stays local, and the derived inputs are dropped before
-    the fit.  Byte counts and measured peaks: docs/notes/lp.md.
+    the fit.  Byte counts and measured peaks: docs/notes/lp.md.  Each
+    thread running a chunk holds one more workspace and its chunk's band
+    sums (see the module docstring, "Threads").
     """
     params = params or Params()
     return _fit_frame(_pack(color, color_var, features, feature_var, n, params), params, keep_models)
@@ -848,7 +904,8 @@ def _place_centres(frame: _Frame, acc: _Accumulator, params: Params, chunk: int,
     """
     h, w = frame.h, frame.w
     radius = int(params.radius)
-    ws = _Workspace(chunk, (2 * radius + 1) ** 2, frame.dim, radius)
+    pool = _WorkspacePool(chunk, (2 * radius + 1) ** 2, frame.dim, radius)
+    inline = h * w < THREAD_MIN_PIXELS
     covered = np.zeros((h, w), bool)
     is_centre = np.zeros((h, w), bool)
     rows, cols = np.arange(h)[:, None], np.arange(w)[None, :]
@@ -857,6 +914,21 @@ def _place_centres(frame: _Frame, acc: _Accumulator, params: Params, chunk: int,
     band_rows = max(1, (1 << 17) // frame.wp - 2 * radius)
     kept = ("r_opt", "rank", "xi_opt", "grad", "b0", "lower") + (("beta", "P", "transform") if keep_models else ())
     placed = {key: [] for key in ("centers",) + kept}
+
+    def compute(piece):
+        # one chunk on a pool thread: its own workspace, its sums over its band
+        yy, xx = piece
+        ws = pool.take()
+        try:
+            res = fit_centres(frame, frame.flat(yy, xx), params, keep_models, ws)
+        finally:
+            pool.give(ws)
+        return np.stack([yy, xx], axis=1), [res[key] for key in kept], acc.contributions(res)
+
+    def reduce(out):
+        acc.apply(out[2])                              # in chunk order: the serial sums
+        return out[:2]
+
     passes = 0
     for g in _granularities(params.granularity, radius):
         cy, cx = np.nonzero((rows % g == 0) & (cols % g == 0) & ~is_centre & ~covered)
@@ -864,17 +936,16 @@ def _place_centres(frame: _Frame, acc: _Accumulator, params: Params, chunk: int,
             continue
         passes += 1
         is_centre[cy, cx] = True
-        s0 = 0
+        # the chunks depend on the shape and parameters only, never on the thread count
+        pieces, s0 = [], 0
         while s0 < len(cy):
             s1 = min(s0 + chunk, int(np.searchsorted(cy, cy[s0] + band_rows)))
-            yy, xx = cy[s0:s1], cx[s0:s1]
-            res = fit_centres(frame, frame.flat(yy, xx), params, keep_models, ws)
-            acc.add(res)
-            placed["centers"].append(np.stack([yy, xx], axis=1))
-            for key in kept:
-                placed[key].append(res[key])
-            del res
+            pieces.append((cy[s0:s1], cx[s0:s1]))
             s0 = s1
+        for centres, values in parallel.ordered_reduce(compute, reduce, pieces, inline):
+            placed["centers"].append(centres)
+            for key, value in zip(kept, values):
+                placed[key].append(value)
         covered = acc.predicted()
     return placed, passes
 
@@ -916,11 +987,13 @@ def _mean_offsets(frame: _Frame, acc: _Accumulator, placed: dict, radius: int, c
     nf = frame.dim - 2
     wsum = acc.wsum
     acc.pred[...] = 0.0
-    out = []
-    for centers, r_opt, xi_opt, grad, b0, lower in zip(placed["centers"], placed["r_opt"], placed["xi_opt"],
-                                                       placed["grad"], placed["b0"], placed["lower"]):
+
+    def compute(model):
+        # one placed chunk on a pool thread: offsets and its sums over its band
+        centers, r_opt, xi_opt, grad, b0, lower = model
         flat = frame.flat(centers[:, 0], centers[:, 1])
         offset = np.zeros((len(flat), 3))
+        sums = []
         for s0 in range(0, len(flat), chunk):
             sl = slice(s0, min(s0 + chunk, len(flat)))
             index = flat[sl, None] + offs[None, :]
@@ -954,8 +1027,18 @@ def _mean_offsets(frame: _Frame, acc: _Accumulator, placed: dict, radius: int, c
                 m = np.clip(m, -cap, cap)
                 offset[sl, c] = m
                 val = np.maximum(pred[:, c] + m[:, None], lower[sl, c, None])
-                acc.pred[c, lo:lo + span] += np.bincount((index - lo)[inside], (val * wt)[inside], span)
-        out.append(offset)
+                sums.append((c, lo, span, np.bincount((index - lo)[inside], (val * wt)[inside], span)))
+        return offset, sums
+
+    def reduce(result):
+        offset, sums = result
+        for c, lo, span, part in sums:                 # in chunk order: the serial sums
+            acc.pred[c, lo:lo + span] += part
+        return offset
+
+    models = list(zip(placed["centers"], placed["r_opt"], placed["xi_opt"], placed["grad"], placed["b0"],
+                      placed["lower"]))
+    out = parallel.ordered_reduce(compute, reduce, models, frame.h * frame.w < THREAD_MIN_PIXELS)
     return np.concatenate(out) if out else np.zeros((0, 3))
 
 
@@ -1011,21 +1094,31 @@ class _Accumulator:
 
     def add(self, res: dict) -> None:
         """Add each centre's predictions over its optimal window (Eq. 1), with
-        its error xi_c(k_opt) and ``xi_c(k_opt) n_i^(-4/(d_c+4))`` (Sec. 5.2).
+        its error xi_c(k_opt) and ``xi_c(k_opt) n_i^(-4/(d_c+4))`` (Sec. 5.2):
+        :meth:`apply` of :meth:`contributions`."""
+        self.apply(self.contributions(res))
+
+    def contributions(self, res: dict) -> tuple:
+        """The sums :meth:`add` adds for one chunk of centres, over the band
+        of padded pixels the chunk touches: ``(lo, span, sums)``, ``sums``
+        the per-channel bincounts of weights, weighted predictions, errors and
+        error reductions, then the model counts and radii (float64, as
+        bincount gives them).  Reads only the frame, so chunks can compute
+        theirs on several threads; :meth:`apply` in chunk order then gives the
+        sums of a serial run bit for bit.
 
         Windows are prefixes of the ring-ordered pixel list, so only the
-        ``(2 r_opt + 1)^2`` pixels inside are scattered (bincount over the band
-        of pixels the chunk touches)."""
+        ``(2 r_opt + 1)^2`` pixels inside are scattered."""
         index, r_opt = res["index"], res["r_opt"]
         dist = res["ring"].astype(np.float64)
         lo = int(index.min())
         span = int(index.max()) + 1 - lo
-        sl = slice(lo, lo + span)
         k = index.shape[1]
         pred = res["pred"]                                               # (N, 3, K)
         expo = -gain_exponent(res["rank"])                               # (N,) -4/(d_c+4)
         positions = np.arange(k)
         logn = self.frame.logn
+        per_channel, cnt, rad = [], [], []
         for c in range(3):
             length = (2 * r_opt[:, c] + 1) ** 2
             inside = positions[None, :] < length[:, None]                # (N, K), a prefix per row
@@ -1039,17 +1132,31 @@ class _Accumulator:
             np.exp(dxi, out=dxi)
             dxi *= xi
             local -= lo
-            self.wsum[c, sl] += np.bincount(local, wt, span)
-            self.pred[c, sl] += np.bincount(local, pred[:, c][inside] * wt, span)
+            sums = [np.bincount(local, wt, span), np.bincount(local, pred[:, c][inside] * wt, span)]
             del inside
             xi *= wt
             dxi *= wt
-            self.err[c, sl] += np.bincount(local, xi, span)
-            self.dxi[c, sl] += np.bincount(local, dxi, span)
+            sums += [np.bincount(local, xi, span), np.bincount(local, dxi, span)]
             del xi, dxi, wt
-            self.cnt[sl] += np.bincount(local, None, span).astype(np.float32)
-            rad = np.repeat(r_opt[:, c].astype(np.float64), length)
-            self.rad[sl] += np.bincount(local, rad, span).astype(np.float32)
+            per_channel.append(sums)
+            # counts and radii: one bincount per channel, added in channel order
+            cnt.append(np.bincount(local, None, span).astype(np.float32))
+            rad.append(np.bincount(local, np.repeat(r_opt[:, c].astype(np.float64), length),
+                                   span).astype(np.float32))
+        return lo, span, per_channel, cnt, rad
+
+    def apply(self, contrib: tuple) -> None:
+        """Add one chunk's :meth:`contributions` to the running sums (in the
+        order and with the roundings of the serial accumulation)."""
+        lo, span, per_channel, cnt, rad = contrib
+        sl = slice(lo, lo + span)
+        for c, (wsum, pred, err, dxi) in enumerate(per_channel):
+            self.wsum[c, sl] += wsum
+            self.pred[c, sl] += pred
+            self.err[c, sl] += err
+            self.dxi[c, sl] += dxi
+            self.cnt[sl] += cnt[c]
+            self.rad[sl] += rad[c]
 
     def predicted(self) -> np.ndarray:
         """(H, W) bool: the pixels Sec. 5.1 counts as predicted by the models
@@ -1065,41 +1172,78 @@ class _Accumulator:
         estimates of 3 degrees of freedom (4 subsets) falls below 0.3x the
         true variance in 1 % of cases, so with a tolerance of 4 a model as
         good as the unfiltered pixel is rarely rejected."""
-        wsum = self.crop(self.wsum)
-        cnt = wsum > 0                                  # weights are > 0 inside a window
-        with np.errstate(divide="ignore", invalid="ignore"):
-            err = self.crop(self.err) / wsum
-            bad = err > COVER_TOLERANCE * self.crop(self.frame.var_typical)
-        return (cnt & ~bad).all(axis=0)
+        f = self.frame
+        out = np.empty((f.h, f.w), bool)
+
+        def band(rows):
+            y0, y1 = rows
+            wsum = self.crop(self.wsum)[:, y0:y1]
+            cnt = wsum > 0                              # weights are > 0 inside a window
+            with np.errstate(divide="ignore", invalid="ignore"):
+                err = self.crop(self.err)[:, y0:y1] / wsum
+                bad = err > COVER_TOLERANCE * self.crop(f.var_typical)[:, y0:y1]
+            out[y0:y1] = (cnt & ~bad).all(axis=0)
+
+        parallel.run_bands(band, f.h, _BAND_ROWS, THREAD_MIN_PIXELS, f.w)
+        return out
 
     def averages(self):
         """The weighted averages over the models covering each pixel (Sec. 5.1,
-        :func:`blend_weights`), each sum released once read: ``image`` (H, W, 3)
+        :func:`blend_weights`), the sums released once read: ``image`` (H, W, 3)
         (non-finite -> 0), ``error`` (H, W) (RGB mean), ``delta_error``
         (H, W, 3) (errors through :func:`_finite_errors`) and ``radius``
-        (H, W) the plain mean r_opt over the covering models and channels."""
-        wsum = self.crop(self.wsum)
-        safe = np.where(wsum > 0, wsum, 1.0)
-        self.wsum = None
-        image = np.ascontiguousarray(np.moveaxis(self.crop(self.pred) / safe, 0, -1))
-        self.pred = None
-        image[~np.isfinite(image)] = 0.0
-        err = _finite_errors(self.crop(self.err) / safe)
-        self.err = None
-        error = err.mean(axis=0)
-        del err
-        dxi = np.ascontiguousarray(np.moveaxis(_finite_errors(self.crop(self.dxi) / safe), 0, -1))
-        self.dxi = None
-        del safe
-        radius = self.crop(self.rad[None])[0] / np.maximum(self.crop(self.cnt[None])[0], 1.0)
+        (H, W) the plain mean r_opt over the covering models and channels.
+        Per pixel, in bands of rows on :mod:`core.parallel`'s pool; the
+        largest finite errors (:func:`_finite_errors`) are maxima over the
+        bands, exact in any order."""
+        f = self.frame
+        h, w = f.h, f.w
+        image = np.empty((h, w, 3))
+        error = np.empty((h, w))
+        dxi = np.empty((h, w, 3))
+        radius = np.empty((h, w), np.result_type(self.rad.dtype, self.cnt.dtype))
+
+        def ratios(y0, y1):
+            wsum = self.crop(self.wsum)[:, y0:y1]
+            safe = np.where(wsum > 0, wsum, 1.0)
+            return self.crop(self.err)[:, y0:y1] / safe, self.crop(self.dxi)[:, y0:y1] / safe, safe
+
+        def tops(rows):
+            # the image, the radii and each band's largest finite errors
+            y0, y1 = rows
+            err, dx, safe = ratios(y0, y1)
+            img = np.moveaxis(self.crop(self.pred)[:, y0:y1] / safe, 0, -1)
+            img[~np.isfinite(img)] = 0.0
+            image[y0:y1] = img
+            radius[y0:y1] = self.crop(self.rad[None])[0, y0:y1] / np.maximum(self.crop(self.cnt[None])[0, y0:y1], 1.0)
+            return [float(a[np.isfinite(a)].max()) if np.isfinite(a).any() else None for a in (err, dx)]
+
+        found = parallel.run_bands(tops, h, _BAND_ROWS, THREAD_MIN_PIXELS, w)
+        top = [max((t[j] for t in found if t[j] is not None), default=0.0) for j in range(2)]
+
+        def errors(rows):
+            y0, y1 = rows
+            err, dx, _ = ratios(y0, y1)
+            error[y0:y1] = _finite_errors(err, top[0]).mean(axis=0)
+            dxi[y0:y1] = np.moveaxis(_finite_errors(dx, top[1]), 0, -1)
+
+        parallel.run_bands(errors, h, _BAND_ROWS, THREAD_MIN_PIXELS, w)
+        self.wsum = self.pred = self.err = self.dxi = None
         return image, error, dxi, radius
 
 
-def _finite_errors(err: np.ndarray) -> np.ndarray:
-    """Clamp estimated errors to >= 0 and replace non-finite ones by the largest
-    finite estimate of the image (0 when there is none)."""
+#: rows per band of the accumulator's per-pixel passes (:meth:`_Accumulator.predicted`,
+#: :meth:`_Accumulator.averages`)
+_BAND_ROWS = 64
+
+
+def _finite_errors(err: np.ndarray, top: float | None = None) -> np.ndarray:
+    """Clamp estimated errors to >= 0 and replace non-finite ones by ``top``,
+    by default the largest finite estimate of ``err`` (0 when there is none;
+    the whole image's when ``err`` is a band of it)."""
     fin = np.isfinite(err)
-    top = float(err[fin].max()) if fin.any() else 0.0
+    if top is None:
+        top = float(err[fin].max()) if fin.any() else 0.0
     return np.maximum(np.where(fin, err, top), 0.0)
 
 

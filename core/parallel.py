@@ -9,7 +9,8 @@ the thread count:
 * work is cut by :func:`bands` into pieces that depend on the data's shape
   only, never on :func:`threads`;
 * results come back in piece order (:func:`map_ordered`), and any reduction
-  over pieces is done by the caller in that order.
+  over pieces is done in that order (by the caller, or by
+  :func:`ordered_reduce` as the pieces finish).
 
 So ``threads() == 1`` and ``threads() == 16`` give bit-identical output (the
 tests compare them), and a checkpoint resumed on another machine continues
@@ -141,3 +142,73 @@ def run_bands(fn, height: int, rows: int = 64, min_work: int = 0, work_per_row: 
     if height * max(1, int(work_per_row)) < int(min_work):
         return [fn(b) for b in pieces]
     return map_ordered(fn, pieces)
+
+
+#: np.linalg.inv (LAPACK getrf/getri) runs one call at a time: OpenBLAS's
+#: LAPACK called from several threads at once contends for its buffers (a
+#: batched 10x10 inverse took 2x, 5x, 30x longer with 2, 3, 5 threads;
+#: matmul and eigh did not); core/lp.py and core/rhf.py take it
+LAPACK_LOCK = threading.Lock()
+
+
+class _Failure:
+    """A piece's exception, kept until its turn (:func:`ordered_reduce`)."""
+
+    def __init__(self, exc: BaseException):
+        self.exc = exc
+
+
+def ordered_reduce(compute, reduce, items, inline: bool = False) -> list:
+    """``[reduce(compute(item)) for item in items]`` with the ``compute`` s on
+    :mod:`core.parallel`'s pool and the ``reduce`` s one at a time in item
+    order, so a reduction into shared sums sees the serial order and gives
+    the same bits for any thread count.  ``inline``: all on the calling thread.
+
+    A piece whose ``compute`` is done leaves its result and returns; the
+    thread that finds the next result in order ready reduces it and every
+    consecutive ready one after it (no thread waits for another's turn), so
+    only the results in flight (``map_ordered`` 's bound) are held.  The
+    first exception, in item order, is raised once all pieces are done; the
+    pieces after it are neither computed nor reduced."""
+    jobs = list(enumerate(items))
+    results = [None] * len(jobs)
+    ready = {}
+    lock = threading.Lock()
+    state = {"next": 0, "busy": False, "error": None}
+    skipped = object()
+
+    def piece(job):
+        i, item = job
+        out = skipped
+        if state["error"] is None:
+            try:
+                out = compute(item)
+            except BaseException as exc:              # raised in order, below
+                out = _Failure(exc)
+        with lock:
+            ready[i] = out
+            if state["busy"]:
+                return                                # the reducing thread takes it
+            state["busy"] = True
+        while True:
+            with lock:
+                j = state["next"]
+                if j not in ready:
+                    state["busy"] = False
+                    return
+                out = ready.pop(j)
+            try:
+                if isinstance(out, _Failure):
+                    raise out.exc
+                if state["error"] is None and out is not skipped:
+                    results[j] = reduce(out)
+            except BaseException as exc:
+                if state["error"] is None:
+                    state["error"] = exc
+            with lock:
+                state["next"] = j + 1
+
+    map_ordered(piece, jobs, min_items=len(jobs) + 1 if inline else 2)
+    if state["error"] is not None:
+        raise state["error"]
+    return results

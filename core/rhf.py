@@ -70,6 +70,15 @@ from neighbours or, with none anywhere, from a robust Immerkaer estimate
 with error 0; magnitudes are clipped (1e30, features 1e6), the output is
 always finite.
 
+Threads (:mod:`core.parallel`): the regression weights of each group of
+centres (``weight_chunks``) and the model chunks of every iteration
+(``regression_pass``, ``chunk_terms``) run as pieces on the shared pool; the
+pieces are cut by the data only, each writes only its own models' rows and
+returns its Eq. 13 sums, and the sums (and the coverage maximum) are added
+one piece at a time in piece order (``parallel.ordered_reduce``): the output is
+bit-identical for any thread count.  Frames below ``THREAD_MIN_PIXELS`` run
+inline.  The feature prefilter (``core.filters.nlm_filter``) is still serial.
+
 Measurements and design notes: docs/notes/rhf.md
 """
 from __future__ import annotations
@@ -80,6 +89,7 @@ from typing import NamedTuple
 
 import numpy as np
 
+from . import parallel
 from .buffers import Buffers
 from .filters import (VALUE_LIMIT, VAR_LIMIT, box_mean, box_sum, guided_filter, guided_filter_mean,
                       nlm_center_weights, nlm_filter, sobel_gradient, window_offsets)
@@ -106,6 +116,9 @@ FEATURE_ORDER = (("normal", 3), ("albedo", 3), ("depth", 1))
 #: ``hat_bias_variance``) take ~0.5 kB per window pixel, so this bounds them
 #: to ~4 MB whatever the window radius.
 CHUNK_PIXELS = 1 << 13
+#: frames below this many pixels run their model chunks on the calling thread
+#: only (measured: docs/notes/rhf.md, "Threads")
+THREAD_MIN_PIXELS = 1 << 16
 
 #: Regression weights of every model are kept over the T iterations as
 #: 16-bit fixed point in [0, 1] (``round(w * WEIGHT_SCALE)``): half the memory
@@ -707,23 +720,29 @@ def weight_chunks(M, vM, cy, cx, cr, ids_all, ks, params: Params, cover: np.ndar
     """
     h, w = M.shape[:2]
     chunk = max(1, int(params.chunk_centers))
-    out = []
     order = ids_all[np.lexsort((cx[ids_all], cy[ids_all], cr[ids_all]))]
+    # the pieces: chunk_centers centres of one radius, cut by the data only
+    pieces = []
     for r in np.unique(cr[order]):
         ids_r = order[cr[order] == r]
-        step = max(1, CHUNK_PIXELS // (2 * int(r) + 1) ** 2)
-        for s0 in range(0, ids_r.size, chunk):
-            ids = ids_r[s0:s0 + chunk]
-            wk = regression_weights(M, vM, cy[ids], cx[ids], int(r), ks, params)
-            idx, inside = _window_index(cy[ids], cx[ids], int(r), h, w)
-            np.maximum.at(cover, idx[inside], wk[:, 0][inside])
-            # kept for all T iterations: 16-bit fixed point (weights are
-            # in [0, 1]; step 1.5e-5, the centre's 1 stays exactly 1)
-            wq = np.rint(wk * WEIGHT_SCALE).astype(np.uint16)
-            del wk
-            for a in range(0, ids.size, step):
-                out.append(ModelChunk(int(r), ids[a:a + step], wq[a:a + step]))
-    return out
+        pieces += [(int(r), ids_r[s0:s0 + chunk]) for s0 in range(0, ids_r.size, chunk)]
+
+    def compute(piece):
+        # on a pool thread: the weights of one piece (reads M and vM only)
+        r, ids = piece
+        wk = regression_weights(M, vM, cy[ids], cx[ids], r, ks, params)
+        idx, inside = _window_index(cy[ids], cx[ids], r, h, w)
+        # kept for all T iterations: 16-bit fixed point (weights are
+        # in [0, 1]; step 1.5e-5, the centre's 1 stays exactly 1)
+        return r, ids, idx[inside], wk[:, 0][inside], np.rint(wk * WEIGHT_SCALE).astype(np.uint16)
+
+    def reduce(out):
+        r, ids, flat, w0, wq = out
+        np.maximum.at(cover, flat, w0)                          # one piece at a time
+        step = max(1, CHUNK_PIXELS // (2 * r + 1) ** 2)
+        return [ModelChunk(r, ids[a:a + step], wq[a:a + step]) for a in range(0, ids.size, step)]
+
+    return [c for part in parallel.ordered_reduce(compute, reduce, pieces, h * w < THREAD_MIN_PIXELS) for c in part]
 
 
 def place_models(M, vM, cy, cx, cr, ks, params: Params) -> ModelSet:
@@ -849,10 +868,11 @@ def hat_bias_variance(X, w, Y, y_prev, var_prev, ridge: float = 1e-3, pilot_var=
         del Xw, XwT
     if need_a:
         A += regularizer(w.sum(-1), P, ridge)
-        try:
-            Ainv = np.linalg.inv(A)
-        except np.linalg.LinAlgError:
-            Ainv = np.linalg.pinv(A)
+        with parallel.LAPACK_LOCK:              # one LAPACK call at a time
+            try:
+                Ainv = np.linalg.inv(A)
+            except np.linalg.LinAlgError:
+                Ainv = np.linalg.pinv(A)
         if not np.all(np.isfinite(Ainv)):
             Ainv = np.where(np.isfinite(Ainv), Ainv, 0.0)
         if cache is not None:
@@ -981,10 +1001,6 @@ def _channel_mean_sq(x: np.ndarray) -> np.ndarray:
         acc += x[..., ch] * x[..., ch]
     return acc / x.shape[-1]
 
-
-def _bincount_add(acc, flat, vals, lo, hi):
-    """acc[flat] += vals (duplicates summed), within the index range [lo, hi)."""
-    acc[lo:hi] += np.bincount(flat - lo, weights=vals, minlength=hi - lo)
 
 
 
@@ -1189,6 +1205,41 @@ def error_at_bandwidth(X, wfit, Yq, idx, pilots, Ainv, kk, err_t, data: Regressi
     return ek
 
 
+def prediction_parts(flat, wsel, yk, inside, lo: int, hi: int) -> list:
+    """The Eq. 13 sums of a chunk's window predictions over the pixel range
+    [lo, hi): ``[(("img_num", ch), part), ..., (("den", None), part)]`` with
+    each part the bincount ``accumulate_predictions`` adds (see there for the
+    arguments); :func:`apply_parts` adds them."""
+    parts = [(("img_num", ch), np.bincount(flat - lo, weights=wsel * yk[..., ch][inside], minlength=hi - lo))
+             for ch in range(3)]
+    parts.append((("den", None), np.bincount(flat - lo, weights=wsel, minlength=hi - lo)))
+    return parts
+
+
+def variance_parts(flat, wk, var, inside, lo: int, hi: int) -> list:
+    """The per-k variance sums of a chunk (``accumulate_variances``) as
+    ``[(("v_num", kq), part), (("v_den", kq), part), ...]`` over [lo, hi)."""
+    wv = wk + MODEL_WEIGHT_FLOOR
+    parts = []
+    for kq in range(wk.shape[1]):
+        wsk = wv[:, kq][inside]
+        parts.append((("v_num", kq), np.bincount(flat - lo, weights=wsk * np.minimum(var[:, kq][inside], 1e30),
+                                                 minlength=hi - lo)))
+        parts.append((("v_den", kq), np.bincount(flat - lo, weights=wsk, minlength=hi - lo)))
+    return parts
+
+
+def apply_parts(arrays, parts: list, lo: int) -> None:
+    """``arrays[name][lo:lo + len(part), column] += part`` for every part
+    (column None: a (H W,) array), in list order; ``arrays`` a dict or a
+    :class:`WindowSums`.  Replaying a chunk's parts in chunk order gives the
+    sums of a serial accumulation bit for bit."""
+    for (name, col), part in parts:
+        arr = arrays[name] if isinstance(arrays, dict) else getattr(arrays, name)
+        target = arr if col is None else arr[:, col]
+        target[lo:lo + part.size] += part
+
+
 def accumulate_predictions(img_num, den, flat, wsel, yk, inside, lo: int, hi: int) -> None:
     """Add a chunk's window predictions to the Eq. 13 sums, in place:
     ``img_num[j] += w(i, j) y_ij`` and ``den[j] += w(i, j)`` over its models.
@@ -1197,9 +1248,7 @@ def accumulate_predictions(img_num, den, flat, wsel, yk, inside, lo: int, hi: in
     window pixels, wsel (m,) their weights; yk (c, n, 3) predictions and
     inside (c, n) the mask that selects the m entries; [lo, hi) bounds flat.
     """
-    for ch in range(3):
-        _bincount_add(img_num[:, ch], flat, wsel * yk[..., ch][inside], lo, hi)
-    _bincount_add(den, flat, wsel, lo, hi)
+    apply_parts({"img_num": img_num, "den": den}, prediction_parts(flat, wsel, yk, inside, lo, hi), lo)
 
 
 def accumulate_variances(v_num, v_den, flat, wk, var, inside, lo: int, hi: int) -> None:
@@ -1210,11 +1259,7 @@ def accumulate_variances(v_num, v_den, flat, wk, var, inside, lo: int, hi: int) 
     v_num, v_den (H W, K) float32; wk, var (c, K, n); flat, inside, lo, hi as
     in ``accumulate_predictions``.  Variances are capped at 1e30 (float32).
     """
-    wv = wk + MODEL_WEIGHT_FLOOR
-    for kq in range(wk.shape[1]):
-        wsk = wv[:, kq][inside]
-        _bincount_add(v_num[:, kq], flat, wsk * np.minimum(var[:, kq][inside], 1e30), lo, hi)
-        _bincount_add(v_den[:, kq], flat, wsk, lo, hi)
+    apply_parts({"v_num": v_num, "v_den": v_den}, variance_parts(flat, wk, var, inside, lo, hi), lo)
 
 
 def combine_models(img_num, den, y, input_weight: float):
@@ -1312,6 +1357,16 @@ def regress_chunk(data: RegressionData, chunk: ModelChunk, pilots, Ainv, Ecum, k
     earlier iteration or None.  Returns Ainv to keep for the next iteration
     (None in the last).
     """
+    Ainv, lo, parts = chunk_terms(data, chunk, pilots, Ainv, Ecum, k_idx, last)
+    apply_parts(sums, parts, lo)
+    return Ainv
+
+
+def chunk_terms(data: RegressionData, chunk: ModelChunk, pilots, Ainv, Ecum, k_idx, last: bool):
+    """:func:`regress_chunk` without the Eq. 13 sums: writes only the chunk's
+    own rows of ``Ecum`` and ``k_idx`` and returns ``(Ainv, lo, parts)``, the
+    sums as :func:`apply_parts` adds them, so chunks can run on several
+    threads and be added in chunk order."""
     t = len(pilots) - 1
     idx, inside, X, wk, wfit, Yq = window_inputs(data, chunk)
     cache = {} if Ainv is None else {"Ainv": Ainv}
@@ -1328,15 +1383,16 @@ def regress_chunk(data: RegressionData, chunk: ModelChunk, pilots, Ainv, Ecum, k
     flat = idx[inside]
     lo, hi = int(flat.min()), int(flat.max()) + 1
     wsel = wm[inside]
-    accumulate_predictions(sums.img_num, sums.den, flat, wsel, yk, inside, lo, hi)
+    parts = prediction_parts(flat, wsel, yk, inside, lo, hi)
     if not last and data.blend == "mse":
-        _bincount_add(sums.err_num, flat, wsel * err_t[np.arange(kk.size), kk][inside], lo, hi)
+        parts.append((("err_num", None), np.bincount(flat - lo, weights=wsel * err_t[np.arange(kk.size), kk][inside],
+                                                     minlength=hi - lo)))
     if last:
         ek = error_at_bandwidth(X, wfit, Yq, idx, pilots, cache["Ainv"], kk, err_t, data)
-        _bincount_add(sums.err_num, flat, wsel * ek[inside], lo, hi)
-        return None
-    accumulate_variances(sums.v_num, sums.v_den, flat, wk, var, inside, lo, hi)
-    return cache["Ainv"]
+        parts.append((("err_num", None), np.bincount(flat - lo, weights=wsel * ek[inside], minlength=hi - lo)))
+        return None, lo, parts
+    parts += variance_parts(flat, wk, var, inside, lo, hi)
+    return cache["Ainv"], lo, parts
 
 
 def regression_pass(data: RegressionData, chunks: list, pilots: list, a_cache: list, Ecum,
@@ -1346,6 +1402,9 @@ def regression_pass(data: RegressionData, chunks: list, pilots: list, a_cache: l
     pilots : the (y_{s-1}, Var_{s-1}) of iterations s = 1..t (``gather_pilot``);
     a_cache : per chunk (X^T W X + Lambda)^-1 or None, updated in place;
     Ecum (N, K) and k_idx (N,) updated in place (``regress_chunk``).
+    The chunks run on :mod:`core.parallel`'s pool (:func:`chunk_terms`: each
+    writes only its own models' rows) and their sums are added in chunk
+    order, so the result is the same bits for any thread count.
 
     Returns the Eq. 13 image (H, W, 3) and, in the last iteration, the error
     map (H W,) (Eq. 12 at k_opt, merged with the Eq. 13 weights, the input's
@@ -1355,8 +1414,16 @@ def regression_pass(data: RegressionData, chunks: list, pilots: list, a_cache: l
     h, w = data.fhat.shape[:2]
     K = Ecum.shape[1]
     sums = WindowSums.zeros(h * w, K, last)
-    for gi, chunk in enumerate(chunks):
-        a_cache[gi] = regress_chunk(data, chunk, pilots, a_cache[gi], Ecum, k_idx, sums, last)
+
+    def compute(gi):
+        return gi, chunk_terms(data, chunks[gi], pilots, a_cache[gi], Ecum, k_idx, last)
+
+    def reduce(out):
+        gi, (ainv, lo, parts) = out
+        apply_parts(sums, parts, lo)                            # in chunk order: the serial sums
+        a_cache[gi] = ainv
+
+    parallel.ordered_reduce(compute, reduce, range(len(chunks)), h * w < THREAD_MIN_PIXELS)
     if data.blend == "mse":
         img, err = blend_input(sums.img_num, sums.den, sums.err_num, data.y, data.var_blend)
         if last:

@@ -9,7 +9,7 @@ import pytest
 
 bpy = pytest.importorskip("bpy")
 
-from blend_util import build_scene, compositor_tree  # noqa: E402
+from blend_util import add_images, build_scene, compositor_tree  # noqa: E402
 
 from cycles_adaptive.core import io as imageio  # noqa: E402
 from cycles_adaptive.core.pipeline import Options  # noqa: E402
@@ -162,3 +162,22 @@ def test_view_layer_choice_follows_blender_and_refuses_bad_names():
                      (",", "expected all")]:
         with pytest.raises(JobError, match=msg):
             resolve_view_layers(scene, bad)
+
+
+def test_single_channel_passes_are_fed_depth_from_the_first_sample_mist_averaged(tmp_path):
+    scene = build_scene(24, 16)
+    vl = bpy.context.view_layer
+    tree, out = compositor_tree(scene)
+    rl = tree.nodes.new("CompositorNodeRLayers")
+    vl.use_pass_z = vl.use_pass_mist = True
+    tree.links.new(add_images(tree, rl.outputs["Depth"], rl.outputs["Mist"]), out.inputs[0])
+    vl.use_pass_z = vl.use_pass_mist = False
+    _, summary = _job(scene, tmp_path)
+    assert summary["compositor"] == "applied"
+    raw, _ = imageio.read_layers(summary["out"])
+    comp, _ = imageio.read_layers(summary["out"], "Composite")
+    z, mist = raw["Feat_z"][..., 0], raw["Feat_mist"][..., 0]
+    hit = z < 1e3  # background depth is 1e10
+    assert hit.any() and (0 < mist[hit]).all() and (mist <= 1).all()
+    assert 2 < z[hit].min() < z[hit].max() < 20  # camera 6.7 units from the origin
+    np.testing.assert_allclose(comp["Combined"][..., 0][hit], (z + mist)[hit], rtol=1e-5)

@@ -6,13 +6,19 @@ before/after a change of core/lp.py.
   python tools/lp_study.py refs [--ref-spp 1024]       # private references where /work/refs has none
   python tools/lp_study.py quality [--before DIR] [--spps 8,16] [--scenes ...]
   python tools/lp_study.py speed [--before DIR]         # 512x512 (cornell 16 spp tiled 4x4)
+  python tools/lp_study.py threads [--sizes 1920x1080,512x512,128x128] [--threads 1,2] [--repeats 3]
+                                   [--method lp|rhf] [--min-pixels N] [--before DIR]
 
 ``quality`` prints one row per scene and spp: relMSE (input and LP), mean
 brightness of the output relative to the sample mean, the smallest output (and
 the reference there), the Pearson correlation of the estimated error map with
 the true squared error per pixel and pooled over 8x8 blocks, the median ratio
 of estimated to true error (8x8 blocks), the centres' radius histogram and the
-seconds.  ``--before DIR`` runs a second checkout's LP (e.g. /work/before) on
+seconds.  ``threads`` times LP's reconstruction and sample map (cornell 16 spp tiled to
+each size) with each thread count, interleaved (size by size, repeat by repeat,
+thread count by thread count), and prints the medians, the CPU seconds per
+wall second and whether every thread count (and ``--before``'s LP) gave the
+same bits.  ``--before DIR`` runs a second checkout's LP (e.g. /work/before) on
 the same inputs.  Buffers come from ``$LP_STUDY_CACHE`` (default
 /tmp/lp_study), or from tools/rhf_study.py's cache when that has them.
 """
@@ -216,9 +222,77 @@ def speed(mods, scene="cornell", spp=16, reps=4):
               f"peak {peak / px:.0f} B/px", flush=True)
 
 
+def tiled_inputs(width, height, scene="cornell", spp=16):
+    """LP's inputs of the scene's cached buffers tiled (and cropped) to
+    width x height: realistic structure at any size."""
+    buf = load(scene, spp)
+    color, var, feats, fvars = lp._inputs(buf)
+
+    def tile(a):
+        reps = (-(-height // a.shape[0]), -(-width // a.shape[1])) + (1,) * (a.ndim - 2)
+        return np.ascontiguousarray(np.tile(a, reps)[:height, :width])
+    return tile(color), tile(var), {k: tile(v) for k, v in feats.items()}, \
+        {k: tile(v) for k, v in fvars.items()}, tile(buf.n)
+
+
+def threads(mods, sizes, counts, repeats=3, method="lp", min_pixels=None):
+    """Median seconds of ``denoise`` (reconstruct on arrays) and of
+    ``sample_map`` on its result per size and thread count, interleaved;
+    ``method`` lp or rhf (``mods``' modules are then their rhf);
+    ``min_pixels`` overrides the method's ``THREAD_MIN_PIXELS``."""
+    from types import SimpleNamespace
+    from cycles_adaptive.core import parallel, rhf
+    mod_now = lp if method == "lp" else rhf
+    if min_pixels is not None:
+        mod_now.THREAD_MIN_PIXELS = int(min_pixels)
+    for width, height in sizes:
+        color, var, feats, fvars, n = tiled_inputs(width, height)
+        if method == "rhf":                                   # rhf wants per-channel variances
+            fvars = {k: np.repeat(v, feats[k].shape[-1], axis=-1) / feats[k].shape[-1] for k, v in fvars.items()}
+        shim = SimpleNamespace(shape=(height, width), n=n)    # what sample_map reads of the buffers
+        times = {c: [] for c in counts}
+        cpu = {c: [] for c in counts}
+        smap = {c: [] for c in counts}
+        outputs = {}
+        for _ in range(repeats):
+            for c in counts:
+                parallel.set_threads(c)
+                t, p = time.perf_counter(), time.process_time()
+                res = mod_now.denoise(color, var, feats, feature_var=fvars, n=n)
+                sec = time.perf_counter() - t
+                times[c].append(sec)
+                cpu[c].append((time.process_time() - p) / max(sec, 1e-9))
+                t = time.perf_counter()
+                alloc = mod_now.sample_map(shim, res, 4 * width * height, None, {})
+                smap[c].append(time.perf_counter() - t)
+                outputs.setdefault(c, (res.image, res.error, alloc))
+        parallel.set_threads(None)
+        same = all(all(np.array_equal(a, b) for a, b in zip(outputs[counts[0]], outputs[c])) for c in counts)
+        line = f"{method} {width}x{height}: " + ", ".join(
+            f"{c} thr {np.median(times[c]):.2f} s (cpu/wall {np.median(cpu[c]):.2f}, sample_map "
+            f"{np.median(smap[c]) * 1e3:.0f} ms)" for c in counts) + f"; identical across threads: {same}"
+        for label, mod in mods:
+            if mod is lp:
+                continue
+            if method == "rhf":
+                mod = importlib.import_module(mod.__name__.rsplit(".", 1)[0] + ".rhf")
+            t = time.perf_counter()
+            old = mod.denoise(color, var, feats, feature_var=fvars, n=n)
+            sec = time.perf_counter() - t
+            ref = outputs[counts[0]]
+            line += (f"; {label} {sec:.2f} s, identical to {label}: "
+                     f"{np.array_equal(old.image, ref[0]) and np.array_equal(old.error, ref[1])}")
+        print(line, flush=True)
+
+
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("command", choices=("render", "refs", "quality", "speed"))
+    ap.add_argument("command", choices=("render", "refs", "quality", "speed", "threads"))
+    ap.add_argument("--sizes", default="1920x1080,512x512,128x128", help="threads: WxH,...")
+    ap.add_argument("--threads", default="1,2", help="threads: thread counts")
+    ap.add_argument("--repeats", type=int, default=3, help="threads: interleaved repeats")
+    ap.add_argument("--method", default="lp", choices=("lp", "rhf"), help="threads: which method")
+    ap.add_argument("--min-pixels", type=int, default=None, help="threads: override THREAD_MIN_PIXELS")
     ap.add_argument("--ref-spp", type=int, default=1024, help="samples of the private references (refs)")
     ap.add_argument("--spps", default="8,16")
     ap.add_argument("--scenes", nargs="*", default=list(SCENES))
@@ -234,6 +308,10 @@ def main(argv=None):
     mods = ([("before", load_before(a.before))] if a.before else []) + [("after", lp)]
     if a.command == "speed":
         speed(mods)
+        return 0
+    if a.command == "threads":
+        sizes = [tuple(int(v) for v in z.split("x")) for z in a.sizes.split(",")]
+        threads(mods, sizes, [int(c) for c in a.threads.split(",")], a.repeats, a.method, a.min_pixels)
         return 0
     quality(mods, spps, a.scenes)
     return 0

@@ -115,3 +115,4 @@ def test_band_reduction_is_identical_for_any_thread_count():
             total += p
         sums.append(total)
     assert all(np.array_equal(sums[0], s) for s in sums[1:])
+
