@@ -20,6 +20,9 @@ follow and that is worth following:
    renders.
 
 Both keep the map's total (largest-remainder rounding, :func:`core.method.allocate`).
+The pooling runs over row bands on the controller's threads (each band reads
+``r`` rows beyond its own); the bits do not depend on the bands or the thread
+count.  The total and the rounding stay whole-frame and serial.
 Measurements (tools/planner_curve.py): docs/notes/planner.md.
 """
 from __future__ import annotations
@@ -49,31 +52,89 @@ def confidence_pool(counts: np.ndarray, dof: np.ndarray, radius: int = 1) -> np.
     total = int(round(c.sum()))
     if total <= 0 or c.size == 0:
         return np.zeros(c.shape, np.int64)
-    nu = np.asarray(dof, np.float64)
-    nu = np.where(np.isfinite(nu) & (nu > 0), nu, 0.0)
+    nu = np.broadcast_to(np.asarray(dof, np.float64), c.shape)
     h, w = c.shape
     r = int(radius)
-    cp = np.pad(c, r)
-    nup = np.pad(nu, r)
-    inside = np.pad(np.ones((h, w)), r)
-    num = np.zeros((h, w))
-    den = np.zeros((h, w))
-    plain = np.zeros((h, w))
-    area = np.zeros((h, w))
+    pooled = np.empty((h, w))
+
+    def band(rows):
+        y0, y1 = rows
+        _pool_rows(c, nu, r, y0, y1, pooled)
+
+    _run_bands(band, h, w)
+    return allocate(pooled, total)
+
+
+#: pixels per row band of the pooling (rows = BAND_PIXELS // width) and the
+#: size below which it runs inline: shape only, never the thread count
+BAND_PIXELS = 32768
+INLINE_PIXELS = 65536
+
+
+def _run_bands(fn, h: int, w: int) -> None:
+    """``fn((y0, y1))`` over row bands of about :data:`BAND_PIXELS` pixels on
+    the controller's threads (:mod:`core.parallel`), inline below
+    :data:`INLINE_PIXELS` pixels."""
+    from . import parallel
+    if h * w == 0:
+        return
+    rows = max(1, BAND_PIXELS // max(1, w))
+    if h * w < INLINE_PIXELS:
+        fn((0, h))
+        return
+    parallel.run_bands(fn, h, rows)
+
+
+def _pool_rows(c, dof, r, y0, y1, out) -> None:
+    """Rows ``y0:y1`` of :func:`confidence_pool`'s pooled (unrounded) map into
+    ``out[y0:y1]``, from rows ``y0 - r : y1 + r`` of the cleaned counts ``c``
+    and the raw ``dof``, zero-padded outside the image.  Per pixel the same
+    operations in the same order as over the whole frame, so the band's
+    values are the whole frame's bits."""
+    from .buffers import _tmp
+    h, w = c.shape
+    bh, pw = y1 - y0, w + 2 * r
+    a0, a1 = max(0, y0 - r), min(h, y1 + r)
+    cp = _tmp("cpool_c", (bh + 2 * r, pw))
+    nup = _tmp("cpool_nu", (bh + 2 * r, pw))
+    inside = _tmp("cpool_in", (bh + 2 * r, pw))
+    for a in (cp, nup, inside):
+        a.fill(0.0)
+    t0, t1 = a0 - (y0 - r), a1 - (y0 - r)
+    cp[t0:t1, r:r + w] = c[a0:a1]
+    d = dof[a0:a1]
+    nup[t0:t1, r:r + w] = np.where(np.isfinite(d) & (d > 0), d, 0.0)
+    inside[t0:t1, r:r + w] = 1.0
+    nu = nup[r:r + bh, r:r + w]
+    shape = (bh, w)
+    num = _tmp("cpool_num", shape)
+    den = _tmp("cpool_den", shape)
+    plain = _tmp("cpool_plain", shape)
+    area = _tmp("cpool_area", shape)
+    for a in (num, den, plain, area):
+        a.fill(0.0)
+    prod = _tmp("cpool_prod", shape)
+    s = _tmp("cpool_s", shape)
+    wq = _tmp("cpool_w", shape)
+    pos = _tmp("cpool_pos", shape, bool)
     for dy in range(2 * r + 1):
         for dx in range(2 * r + 1):
-            cq, nq, iq = cp[dy:dy + h, dx:dx + w], nup[dy:dy + h, dx:dx + w], inside[dy:dy + h, dx:dx + w]
+            cq, nq, iq = cp[dy:dy + bh, dx:dx + w], nup[dy:dy + bh, dx:dx + w], inside[dy:dy + bh, dx:dx + w]
             if dy == r and dx == r:
-                wq = nu
+                wt = nu
             else:
-                s = nu + nq
-                wq = np.divide(nu * nq, s, out=np.zeros((h, w)), where=s > 0)
-            num += wq * cq
-            den += wq
-            plain += cq * iq
-            area += iq
-    pooled = np.where(den > 0, num / np.where(den > 0, den, 1.0), plain / np.maximum(area, 1.0))
-    return allocate(pooled, total)
+                np.add(nu, nq, out=s)
+                np.multiply(nu, nq, out=prod)
+                wq.fill(0.0)
+                np.divide(prod, s, out=wq, where=np.greater(s, 0.0, out=pos))
+                wt = wq
+            np.add(num, np.multiply(wt, cq, out=prod), out=num)
+            np.add(den, wt, out=den)
+            np.add(plain, np.multiply(cq, iq, out=prod), out=plain)
+            np.add(area, iq, out=area)
+    ok = np.greater(den, 0.0, out=pos)
+    safe = np.where(ok, den, 1.0)
+    out[y0:y1] = np.where(ok, num / safe, plain / np.maximum(area, 1.0))
 
 
 def pool_to_blocks(counts: np.ndarray, size: int) -> np.ndarray:

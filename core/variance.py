@@ -79,7 +79,9 @@ EXPONENT_RANGE = (0.5, 3.0)
 GUIDE_FEATURES = {"albedo": 0.05, "normal": 0.1, "depth": 0.05}
 #: tolerance of the colour guide (log of the mean + 0.01, i.e. relative)
 COLOR_TOLERANCE = 0.2
-#: rows per chunk of the pooling (bounded memory)
+#: rows per band of the pooling (bounded memory: the guides, weights and sums
+#: exist for one band and its halo at a time); the bands run on the
+#: controller's threads, and their size does not change the result
 CHUNK_ROWS = 64
 
 
@@ -228,23 +230,25 @@ def expected_m2_factor(n, k, exponent: float = 1.0) -> np.ndarray:
 
 
 # ------------------------------------------------------------------ pooling
-def _guides(buf, names, color=True):
+def _guides(buf, names, color=True, rows=None):
     """[(values (H, W, C), noise variance (H, W, C), tolerance)] of the guide
     features present in ``buf``, finite (depth as log depth), and of the
-    colour mean as log(mean + 0.01) when ``color``."""
+    colour mean as log(mean + 0.01) when ``color``.  ``rows`` ``(r0, r1)``:
+    those rows only (the same values; per-pixel arithmetic)."""
     out = []
+    r = slice(None) if rows is None else slice(int(rows[0]), int(rows[1]))
     if color:
-        mu = np.nan_to_num(np.asarray(buf.color.mean, np.float64), nan=0.0, posinf=1e30, neginf=0.0)
+        mu = np.nan_to_num(np.asarray(buf.color.mean[r], np.float64), nan=0.0, posinf=1e30, neginf=0.0)
         mu = np.clip(mu, 0.0, 1e30) + 0.01
-        var = buf.variance_of_mean()
+        var = buf.variance_of_mean(rows=rows)
         var = np.clip(np.where(np.isfinite(var), var, 0.0) / (mu * mu), 0.0, 1e6)
         out.append((np.log(mu), var, COLOR_TOLERANCE))
     for name in names:
         st = buf.features.get(name)
         if st is None:
             continue
-        v = np.nan_to_num(np.asarray(st.mean, np.float64), nan=0.0, posinf=1e30, neginf=-1e30)
-        var = buf.variance_of_mean(st)
+        v = np.nan_to_num(np.asarray(st.mean[r], np.float64), nan=0.0, posinf=1e30, neginf=-1e30)
+        var = buf.variance_of_mean(st, rows=rows)
         var = np.where(np.isfinite(var), var, 0.0)
         if name == "depth":
             safe = np.clip(np.abs(v), 1e-6, 1e30)
@@ -279,23 +283,48 @@ def pool_m2(m2, factor, guides=(), radius: int = 2, dof=None):
     estimate; with ``dof``, ``(C, effective dof)``.
     """
     m2 = np.asarray(m2, np.float64)
-    h = m2.shape[0]
-    valid = (factor > 0)[..., None] & np.isfinite(m2) & (m2 >= 0)
-    m2c = np.where(valid, np.minimum(m2, 1e300), 0.0)
-    fac = np.where(valid, factor[..., None], 0.0)
-    r = int(max(0, radius))
-    inv_d = None
-    if dof is not None:
-        d = np.asarray(dof, np.float64)
-        inv_d = np.where(valid, 1.0 / np.where(d > 0, d, 1.0)[..., None], 0.0)
+    factor = np.asarray(factor, np.float64)
+    d = None if dof is None else np.asarray(dof, np.float64)
+    guides = list(guides)
+
+    def region(a0, a1):
+        L = slice(a0, a1)
+        return (m2[L], factor[L], None if d is None else d[L],
+                [(f[L], v[L], t) for f, v, t in guides])
+
     out = np.empty(m2.shape)
     dof_out = np.zeros(m2.shape) if dof is not None else None
-    for y0 in range(0, h, CHUNK_ROWS):
-        y1 = min(h, y0 + CHUNK_ROWS)
-        a0, a1 = max(0, y0 - r), min(h, y1 + r)  # the chunk and its halo
-        L = slice(a0, a1)
-        num, den, den2 = _pool_region(m2c[L], fac[L], None if inv_d is None else inv_d[L],
-                                      [(f[L], v[L], t) for f, v, t in guides], r)
+    _pool_bands(region, m2.shape, radius, out, dof_out)
+    return out if dof is None else (out, dof_out)
+
+
+#: pixels below which the pooling runs inline (threads do not pay)
+INLINE_PIXELS = 65536
+
+
+def _pool_bands(region, shape, radius, out, dof_out=None, finish=None) -> None:
+    """:func:`pool_m2` over row bands of ``CHUNK_ROWS`` rows on the controller's
+    threads, each band with a halo of ``r`` rows.  ``region(a0, a1)`` gives
+    rows ``a0:a1`` of ``(m2, factor, dof or None, guides)``; each band writes
+    rows ``y0:y1`` of ``out`` (and ``dof_out``) only, then ``finish(y0, y1)``.
+    A pixel's sums run over the same pairs in the same order whatever the band
+    (only the image's edges clip its window), so the result has the same bits
+    for any band size and thread count."""
+    from . import parallel
+    h, w = int(shape[0]), int(shape[1]) if len(shape) > 1 else 1
+    r = int(max(0, radius))
+
+    def band(rows):
+        y0, y1 = rows
+        a0, a1 = max(0, y0 - r), min(h, y1 + r)  # the band and its halo
+        m2, factor, d, guides = region(a0, a1)
+        valid = (factor > 0)[..., None] & np.isfinite(m2) & (m2 >= 0)
+        m2c = np.where(valid, np.minimum(m2, 1e300), 0.0)
+        fac = np.where(valid, factor[..., None], 0.0)
+        inv_d = None
+        if d is not None:
+            inv_d = np.where(valid, 1.0 / np.where(d > 0, d, 1.0)[..., None], 0.0)
+        num, den, den2 = _pool_region(m2c, fac, inv_d, guides, r)
         k0, k1 = y0 - a0, y1 - a0
         num, den = num[k0:k1], den[k0:k1]
         with np.errstate(over="ignore", invalid="ignore", divide="ignore"):
@@ -304,7 +333,12 @@ def pool_m2(m2, factor, guides=(), radius: int = 2, dof=None):
                 den2 = den2[k0:k1]
                 dof_out[y0:y1] = np.where(den2 > 0, den * den / np.where(den2 > 0, den2, 1.0), 0.0)
         out[y0:y1] = np.where(np.isnan(c), np.inf, c)
-    return out if dof is None else (out, dof_out)
+        if finish is not None:
+            finish(y0, y1)
+
+    if h == 0:
+        return
+    parallel.run_bands(band, h, max(1, int(CHUNK_ROWS)), min_work=INLINE_PIXELS, work_per_row=w)
 
 
 def _pool_region(m2c, fac, inv_d, guides, r):
@@ -362,17 +396,35 @@ def calibrated_variance_and_dof(buf, exponent: float = 1.0, radius: int = 2,
     tests that need a Student-t quantile (the consistency guard)."""
     stat = buf.color if stat is None else stat
     b = np.clip(np.nan_to_num(np.asarray(exponent, np.float64), nan=1.0), *EXPONENT_RANGE)
-    factor = expected_m2_factor(buf.n, buf.k, b)
-    c, dof = pool_m2(stat.m2, factor, _guides(buf, features, color_guide) if radius > 0 else (),
-                     radius, dof=np.asarray(buf.k, np.float64) - 1.0)
-    n = np.asarray(buf.n, np.float64)
-    ok = (n > 0) & np.isfinite(n)
-    with np.errstate(over="ignore", invalid="ignore", divide="ignore"):
-        scale = np.where(ok, np.power(np.where(ok, n, 1.0), -b), np.inf)[..., None]
-        v = c * scale
-    v = np.where(np.isnan(v), np.inf, v)
-    v = np.where(ok[..., None], v, np.inf)
-    return v, np.where(np.isfinite(v), dof, 0.0)
+    m2 = np.asarray(stat.m2, np.float64)
+    n_all = np.asarray(buf.n, np.float64)
+    k_all = np.asarray(buf.k, np.float64)
+    b_rows = (lambda L: b[L]) if b.ndim >= 1 else (lambda L: b)
+    names = features if radius > 0 else ()
+    colour = color_guide if radius > 0 else False
+
+    def region(a0, a1):
+        L = slice(a0, a1)
+        factor = expected_m2_factor(n_all[L], k_all[L], b_rows(L))
+        return m2[L], factor, k_all[L] - 1.0, _guides(buf, names, colour, rows=(a0, a1))
+
+    v = np.empty(m2.shape)
+    dof = np.zeros(m2.shape)
+
+    def finish(y0, y1):
+        L = slice(y0, y1)
+        n = n_all[L]
+        ok = (n > 0) & np.isfinite(n)
+        with np.errstate(over="ignore", invalid="ignore", divide="ignore"):
+            scale = np.where(ok, np.power(np.where(ok, n, 1.0), -b_rows(L)), np.inf)[..., None]
+            vb = v[L] * scale
+        vb = np.where(np.isnan(vb), np.inf, vb)
+        vb = np.where(ok[..., None], vb, np.inf)
+        v[L] = vb
+        dof[L] = np.where(np.isfinite(vb), dof[L], 0.0)
+
+    _pool_bands(region, m2.shape, radius, v, dof, finish)
+    return v, dof
 
 
 def calibration_ratio(est_var, mean, reference, reference_variance=None, tile: int = 8) -> float:
