@@ -572,20 +572,8 @@ class RenderJob:
         if self.preview:
             t = time.perf_counter()
             png = preview_path(self.out)
-            if threaded:
-                tmp = imageio.temp_beside(png, ".tif")
-                try:
-                    self._save_display_tiff(px, tmp)
-                    del px
-                    encode = Work(lambda: self._encode_png(tmp, png), f"writing {png}")
-                    yield encode
-                    encode.result()
-                finally:
-                    if os.path.exists(tmp):
-                        os.unlink(tmp)
-            else:
-                shown = out.composite if out.composite is not None else _array(out.passes["Combined"])
-                self.ex.write_preview(self.scene, shown, png)
+            yield from self._preview_steps(out, px, png, threaded)
+            del px
             seconds += time.perf_counter() - t
         self.run.timing.overhead += seconds
         if not partial and not self.keep_checkpoint and os.path.exists(self.ckpt):
@@ -593,6 +581,25 @@ class RenderJob:
         out.summary["total_seconds"] = time.perf_counter() - self.t0
         self._written = out.summary
         return out.summary
+
+    def _preview_steps(self, out: Output, px, png: str, threaded: bool):
+        """Write the preview ``png`` of ``out``: threaded, the colour-managed
+        TIFF here (bpy) from the pixels ``px`` prepared off the main thread,
+        then its PNG encoding as a yielded Work; else one ``save_render`` PNG
+        of the composite (or the Combined pass) here."""
+        if not threaded:
+            shown = out.composite if out.composite is not None else _array(out.passes["Combined"])
+            self.ex.write_preview(self.scene, shown, png)
+            return
+        tmp = imageio.temp_beside(png, ".tif")
+        try:
+            self._save_display_tiff(px, tmp)
+            encode = Work(lambda: self._encode_png(tmp, png), f"writing {png}")
+            yield encode
+            encode.result()
+        finally:
+            if os.path.exists(tmp):
+                os.unlink(tmp)
 
     @property
     def composite(self):
@@ -810,20 +817,7 @@ class LayersJob:
         yield work
         px = work.result()
         if self.preview:
-            png = preview_path(self.out)
-            if threaded:
-                tmp = imageio.temp_beside(png, ".tif")
-                try:
-                    self.jobs[0]._save_display_tiff(px, tmp)
-                    encode = Work(lambda: RenderJob._encode_png(tmp, png), f"writing {png}")
-                    yield encode
-                    encode.result()
-                finally:
-                    if os.path.exists(tmp):
-                        os.unlink(tmp)
-            else:
-                shown = comp if comp is not None else _array(first.passes["Combined"])
-                self.jobs[0].ex.write_preview(self.scene, shown, png)
+            yield from self.jobs[0]._preview_steps(merged, px, preview_path(self.out), threaded)
         self.job.run.timing.overhead += time.perf_counter() - t
         if not partial and not self.keep_checkpoint:
             for j in done:
