@@ -54,8 +54,6 @@ PASS_NAMES = {
 SOCKET_FEATURES = {**{v: k for k, v in PASS_NAMES.items()},
                    **{PASS_NAMES_5[v]: k for k, v in PASS_NAMES.items() if v in PASS_NAMES_5}}
 RESULT_SOCKETS = ("Image", "Alpha")
-#: the layer our output EXR holds the composited image in (Blender's name for it)
-COMPOSITE_LAYER = imageio.COMPOSITE_LAYER
 
 
 class CompositorError(Exception):
@@ -162,7 +160,7 @@ def composite(scene, layers: dict, tmpdir: str | None = None) -> np.ndarray:
     tmpdir = tmpdir or tempfile.mkdtemp(prefix="cycles-adaptive-comp-")
     shape = next(iter(next(iter(layers.values())).values())).shape[:2]
     src = os.path.join(tmpdir, "layers.exr")
-    imageio.write_multilayer(src, [(name, passes) for name, passes in layers.items()])
+    imageio.write_multilayer(src, layers.items())
     dst = os.path.join(tmpdir, "composite.exr")
     img = copy = group = None
     try:

@@ -26,10 +26,9 @@ def float_pixels(rgba: np.ndarray) -> tuple:
     return px[::-1].ravel(), w, h
 
 
-def set_float_image(name: str, rgba: np.ndarray | None = None, prepared: tuple | None = None):
-    """Create or update a float image from (H, W, 1|3|4) pixels (top row
-    first), or from their :func:`float_pixels` buffer ``prepared``."""
-    flat, w, h = prepared if prepared is not None else float_pixels(rgba)
+def set_float_image(name: str, prepared: tuple):
+    """Create or update a float image from a :func:`float_pixels` buffer."""
+    flat, w, h = prepared
     img = bpy.data.images.get(name)
     if img is not None and (tuple(img.size) != (w, h) or not img.is_float):
         bpy.data.images.remove(img)
@@ -68,7 +67,7 @@ def show_prepared(prepared: dict):
     Editors at the result (the composite when there is one)."""
     shown = None
     for name, buf in prepared.items():
-        img = set_float_image(name, prepared=buf)
+        img = set_float_image(name, buf)
         if name in (RESULT, COMPOSITE):
             shown = img
     wm = getattr(bpy.context, "window_manager", None)

@@ -201,10 +201,12 @@ def render_still(scene, view_layer, path: str, what: str = "") -> dict:
         bpy.ops.render.render(write_still=True, scene=scene.name, layer=view_layer.name)
     if not os.path.isfile(path):
         raise SceneError("Cycles wrote no image" + (f" {what}" if what else ""))
-    # the file holds every view layer of the scene (the others empty): read ours
-    passes, meta = imageio.read_layers(path)
-    if meta["layers"] and meta["layer"] != view_layer.name and view_layer.name in meta["layers"]:
+    # a multilayer file of a scene with several view layers holds each (the others empty): read ours
+    try:
         passes, _ = imageio.read_layers(path, view_layer.name)
+    except imageio.ImageFileError as exc:
+        raise SceneError(f"Cycles wrote no layer {view_layer.name!r}" + (f" {what}" if what else "")
+                         + f" ({exc})") from None
     os.unlink(path)
     return passes
 
@@ -429,14 +431,13 @@ def write_preview(scene, rgba: np.ndarray, path: str) -> None:
     """Save (H, W, 3|4) scene-linear pixels as an 8-bit PNG through Blender's
     colour management (the scene's view transform, look, exposure, gamma),
     atomically."""
-    h, w = rgba.shape[:2]
-    px = np.ones((h, w, 4), np.float32)
-    px[:, :, :rgba.shape[2]] = np.nan_to_num(rgba[:, :, :4], nan=0.0, posinf=0.0, neginf=0.0)
+    from .display import float_pixels
+    flat, w, h = float_pixels(rgba)
     img = bpy.data.images.new("cycles_adaptive_preview", w, h, alpha=True, float_buffer=True)
     guard = SettingsGuard()
     try:
         with imageio.atomic_path(path, ".png") as tmp:
-            img.pixels.foreach_set(px[::-1].ravel())  # Blender rows run bottom to top
+            img.pixels.foreach_set(flat)
             st = scene.render.image_settings
             if hasattr(st, "media_type"):
                 guard.set(st, "media_type", "IMAGE")

@@ -98,8 +98,10 @@ def map_ordered(fn, items, min_items: int = 2, ahead: int | None = None):
 
     Inline (no pool) with one thread, fewer than ``min_items`` items, or on a
     pool thread.  At most ``ahead`` items (default ``2 * threads()``) are
-    in flight (submitted and not yet consumed), so memory stays bounded for long item
-    lists.  The first exception raised by ``fn`` propagates after the pieces
+    in flight (submitted and not yet consumed), so a long item list does not
+    queue all its pieces at once; every result is kept for the returned list
+    (pieces that return large arrays should reduce them instead:
+    :func:`ordered_reduce`).  The first exception raised by ``fn`` propagates after the pieces
     already submitted have finished (none is left running)."""
     items = list(items)
     n = threads()

@@ -311,6 +311,32 @@ def _array(value):
     return value[0] if isinstance(value, tuple) else value
 
 
+def check_outputs(out: str, preview: bool, may_replace: bool) -> None:
+    """JobError unless the EXR ``out`` (and its preview) may be written."""
+    try:
+        imageio.check_writable(out, may_replace)
+        if preview:
+            imageio.check_writable(preview_path(out), may_replace)
+    except imageio.ImageFileError as exc:
+        raise JobError(str(exc)) from None
+
+
+def run_compositor(scene, plan, outputs) -> tuple:
+    """``(image, note)``: the scene's compositor (``plan``:
+    :func:`composite_plan`) on ``outputs``, ``[(view layer name, Output)]``,
+    each fed its result and the feature passes the plan names (main thread:
+    bpy); ``(None, "skipped: why")`` when it cannot run."""
+    from ..addon import compositor
+    try:
+        layers = {}
+        for name, out in outputs:
+            feats = {f: _array(out.passes[f"Feat_{f}"]) for f in plan.features(name)}
+            layers[name] = compositor.layer_passes(_array(out.passes["Combined"]), feats, plan.features(name))
+        return compositor.composite(scene, layers), "applied"
+    except (compositor.CompositorError, KeyError) as exc:
+        return None, f"skipped: {exc}"
+
+
 class RenderJob:
     """Adaptive render of one frame of a scene.
 
@@ -358,12 +384,7 @@ class RenderJob:
             raise JobError(f"--resume: no checkpoint {self.ckpt}")
         self.preview = preview and self.out is not None
         if self.out:
-            try:
-                imageio.check_writable(self.out, overwrite or resume)
-                if self.preview:
-                    imageio.check_writable(preview_path(self.out), overwrite or resume)
-            except imageio.ImageFileError as exc:
-                raise JobError(str(exc)) from None
+            check_outputs(self.out, self.preview, overwrite or resume)
         self.keep_checkpoint = keep_checkpoint
         self.reference_path = reference
         self.run: AdaptiveRun | None = None
@@ -610,18 +631,10 @@ class RenderJob:
         """The scene's compositor on ``out`` (main thread: bpy): sets
         ``out.composite`` and the EXR's ``Composite`` layer, or says in the
         summary why it was skipped (the EXR then stays raw)."""
-        from ..addon import compositor
-        names = self.composite_plan.features(self.layer_name)
-        try:
-            feats = {f: _array(out.passes[f"Feat_{f}"]) for f in names}
-            layers = {self.layer_name: compositor.layer_passes(_array(out.passes["Combined"]), feats, names)}
-            rgba = compositor.composite(self.scene, layers)
-        except (compositor.CompositorError, KeyError) as exc:
-            self.compositor_note = f"skipped: {exc}"
-        else:
+        rgba, self.compositor_note = run_compositor(self.scene, self.composite_plan, [(self.layer_name, out)])
+        if rgba is not None:
             out.composite = rgba
-            out.extra_layers = [(compositor.COMPOSITE_LAYER, {"Combined": rgba})]
-            self.compositor_note = "applied"
+            out.extra_layers = [(imageio.COMPOSITE_LAYER, {"Combined": rgba})]
         out.summary["compositor"] = self.compositor_note
 
     @staticmethod
@@ -629,14 +642,11 @@ class RenderJob:
         """The image shown (the composite when the compositor ran, else the
         Combined pass) as the flat float32 RGBA buffer of a Blender
         image (rows bottom to top; non-finite values 0; alpha 1 where the pass
-        has none) and its width and height, as
-        :func:`addon.executor.write_preview` builds it: numpy only, so the
+        has none) and its width and height (:func:`addon.display.float_pixels`,
+        as :func:`addon.executor.write_preview` uses it): numpy only, so the
         writer thread prepares it."""
-        rgba = out.composite if out.composite is not None else _array(out.passes["Combined"])
-        h, w = rgba.shape[:2]
-        px = np.ones((h, w, 4), np.float32)
-        px[:, :, :rgba.shape[2]] = np.nan_to_num(rgba[:, :, :4], nan=0.0, posinf=0.0, neginf=0.0)
-        return px[::-1].reshape(-1), w, h
+        from ..addon.display import float_pixels
+        return float_pixels(out.composite if out.composite is not None else _array(out.passes["Combined"]))
 
     def _save_display_tiff(self, pixels: tuple, path: str) -> None:
         """The bpy part of the preview (main thread): ``pixels``
@@ -724,12 +734,7 @@ class LayersJob:
         self.out = os.path.abspath(bpy_path(out))
         self.preview = preview
         self.keep_checkpoint = keep_checkpoint
-        try:
-            imageio.check_writable(self.out, overwrite or resume)
-            if preview:
-                imageio.check_writable(preview_path(self.out), overwrite or resume)
-        except imageio.ImageFileError as exc:
-            raise JobError(str(exc)) from None
+        check_outputs(self.out, preview, overwrite or resume)
         self.composite_plan, self.compositor_note = (composite_plan(scene, self.names) if compositor
                                                      else (None, "off"))
         self.jobs = []
@@ -798,10 +803,10 @@ class LayersJob:
             if len(done) < len(self.jobs):
                 note = "skipped: not every view layer was rendered"
             else:
-                comp, note = self._composite(done, outs)
+                comp, note = run_compositor(self.scene, self.composite_plan,
+                                            [(j.layer_name, o) for j, o in zip(done, outs)])
                 if comp is not None:
-                    from ..addon import compositor
-                    extra = [(compositor.COMPOSITE_LAYER, {"Combined": comp})]
+                    extra = [(imageio.COMPOSITE_LAYER, {"Combined": comp})]
         first = outs[0]
         merged = Output(first.passes, first.layer, dict(first.attributes), self._summary(done, outs, note, partial),
                         [(o.layer, o.passes) for o in outs[1:]] + extra, comp)
@@ -826,19 +831,6 @@ class LayersJob:
         merged.summary["total_seconds"] = time.perf_counter() - self.t0
         self.summary = self._written = merged.summary
         return merged.summary
-
-    def _composite(self, jobs, outs) -> tuple:
-        """(composited image or None, note): the compositor on every layer."""
-        from ..addon import compositor
-        try:
-            layers = {}
-            for j, o in zip(jobs, outs):
-                names = self.composite_plan.features(j.layer_name)
-                feats = {f: _array(o.passes[f"Feat_{f}"]) for f in names}
-                layers[j.layer_name] = compositor.layer_passes(_array(o.passes["Combined"]), feats, names)
-            return compositor.composite(self.scene, layers), "applied"
-        except (compositor.CompositorError, KeyError) as exc:
-            return None, f"skipped: {exc}"
 
     def _summary(self, jobs, outs, note: str, partial: bool) -> dict:
         """The first layer's summary with the totals of all layers, each
