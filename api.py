@@ -450,7 +450,9 @@ def compare(result_or_path, reference_path, fail: float = 0.016, failpercent: fl
     if ignore_noise and metric != "relmse":
         raise Error("ignore_noise needs metric='relmse' (idiff counts every pixel over the threshold)")
     img, channels, err, name = _image_of(result_or_path)
-    ref, ref_err = _reference(reference_path, img.shape[:2], channels)
+    ref, ref_err, ref_half = _reference(reference_path, img.shape[:2], channels)
+    if ref_half and isinstance(result_or_path, Result):
+        img = imageio.as_half(img)  # compared as the reference's file stores it
     if ignore_noise and err is None:
         raise Error(f"{name} has no error map (Error pass): cannot tell noise from change")
     if diff_path is not None:
@@ -496,7 +498,7 @@ def _image_of(result_or_path):
     if not isinstance(result_or_path, (str, os.PathLike)):
         raise Error(f"expected a Result or an EXR path, got {type(result_or_path).__name__}")
     path = os.path.abspath(os.fspath(result_or_path))
-    img, channels, err = _read_image(path, "render")
+    img, channels, err, _ = _read_image(path, "render")
     if not np.isfinite(img).all() or err is not None and not np.isfinite(err[0]).all():
         raise Error(f"render {path} has NaN or Inf values")
     return img, channels, err, path
@@ -517,15 +519,16 @@ def _read_image(path: str, what: str):
     err, groups = passes.get("Error"), passes.get("Groups")
     if err is not None:
         err = (np.asarray(err[:, :, 0], np.float64), None if groups is None else groups[:, :, 0])
-    return passes[key], channels, err
+    return passes[key], channels, err, key in meta.get("half", ())
 
 
 def _reference(path, shape, channels):
-    """(reference rgba, its error map or None), checked against the render."""
+    """(reference rgba, its error map or None, whether it is stored in half
+    float), checked against the render."""
     if path is None:
         raise Error("no reference path given")
     path = os.path.abspath(os.fspath(path))
-    ref, ref_channels, ref_err = _read_image(path, "reference")
+    ref, ref_channels, ref_err, ref_half = _read_image(path, "reference")
     if ref.shape[:2] != tuple(shape):
         raise Error(f"reference {path} is {ref.shape[1]}x{ref.shape[0]}, the render is {shape[1]}x{shape[0]}")
     if tuple(ref_channels) != tuple(channels):
@@ -538,7 +541,7 @@ def _reference(path, shape, channels):
                     f"channel {ref_channels[c]})")
     if ref_err is not None and not np.isfinite(ref_err[0]).all():
         ref_err = None  # an unusable error map: treat the reference as exact
-    return ref, ref_err
+    return ref, ref_err, ref_half
 
 
 def _zscore(img, ref, err, ref_err) -> np.ndarray:

@@ -158,8 +158,21 @@ def border_pixels(scene) -> tuple:
     return regions.pixels_from_border(border, w, h)
 
 
+def alive(id_data) -> bool:
+    """False once Blender freed the datablock ``id_data`` (another file was
+    opened, or it was deleted): bpy then raises ReferenceError for the ID,
+    while a struct inside it would point at freed memory."""
+    try:
+        id_data.name
+    except ReferenceError:
+        return False
+    return True
+
+
 class SettingsGuard:
-    """Record attribute values, set new ones, restore them all on exit."""
+    """Record attribute values, set new ones, restore them all on exit
+    (skipping those of datablocks freed meanwhile: a run's generator closed
+    after another file was opened must not touch the old one's memory)."""
 
     def __init__(self):
         self._saved = []
@@ -167,13 +180,15 @@ class SettingsGuard:
     def set(self, obj, attr, value):
         if not hasattr(obj, attr):
             return False
-        self._saved.append((obj, attr, getattr(obj, attr)))
+        self._saved.append((getattr(obj, "id_data", None), obj, attr, getattr(obj, attr)))
         if getattr(obj, attr) != value:
             setattr(obj, attr, value)
         return True
 
     def restore(self):
-        for obj, attr, value in reversed(self._saved):
+        for owner, obj, attr, value in reversed(self._saved):
+            if owner is not None and not alive(owner):
+                continue
             try:
                 if getattr(obj, attr) != value:
                     setattr(obj, attr, value)
@@ -257,7 +272,7 @@ class CyclesExecutor:
     def close(self):
         self.guard.restore()
         frame = getattr(self, "_frame", None)
-        if frame is not None and self.scene.frame_current != frame:
+        if frame is not None and alive(self.scene) and self.scene.frame_current != frame:
             self.scene.frame_set(frame)
         if self._own_tmp:
             shutil.rmtree(self.tmpdir, ignore_errors=True)

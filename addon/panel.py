@@ -95,6 +95,7 @@ class CYCLESADAPTIVE_PT_panel(_RenderPanel, bpy.types.Panel):
         col.label(text=f"Cycles Render Max Samples: {scene.cycles.samples}", icon="INFO")
         col.prop(s, "max_seconds")
         col.prop(s, "output_path")
+        col.prop(s, "exr_depth")
         col.prop(s, "frame_range")
         if s.frame_range:
             col.prop(s, "temporal")

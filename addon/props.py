@@ -130,6 +130,14 @@ class CYCLESADAPTIVE_PG_settings(bpy.types.PropertyGroup):
     use_compositor: BoolProperty(name="Compositor", default=True,
                                  description="Run the scene's compositor on the result when the scene "
                                              "composites its renders (the raw passes stay in the EXR)")
+    exr_depth: EnumProperty(name="EXR Depth", default="scene",
+                            items=[("scene", "As Output", "The Output properties' Color Depth when they "
+                                    "save OpenEXR, else Half"),
+                                   ("half", "Float (Half)", "Result, composite, error and variance in "
+                                    "16-bit float: about half the file (the statistics a later denoise "
+                                    "reads stay full float)"),
+                                   ("full", "Float (Full)", "Every pass in 32-bit float")],
+                            description="How the output EXR stores the result passes")
     use_scene_samples: BoolProperty(name="Use Scene Samples", default=False,
                                     description="Take the budget (mean samples per pixel) from Cycles' "
                                                 "Render Max Samples instead of Samples per Pixel below")

@@ -42,7 +42,8 @@ def read_layers(path: str, layer: str | None = None) -> tuple[dict, dict]:
     removed; ``""`` for un-prefixed channels) to an (H, W, C) float32 array with
     channels in file order; ``meta`` holds ``width``, ``height``, ``layer``
     (the view-layer name, or ``""``), ``layers`` (every layer of the file, in
-    file order), ``channels`` per pass and the file's string attributes.
+    file order), ``channels`` per pass, ``half`` (the passes stored in half
+    float) and the file's string attributes.
     ``layer``: which layer (ImageFileError when absent); default the first
     one as :func:`write_multilayer` ordered them (its ``LAYERS_ATTRIBUTE``;
     EXR itself sorts channels by name), else the first other than Blender's
@@ -56,7 +57,7 @@ def read_layers(path: str, layer: str | None = None) -> tuple[dict, dict]:
     # Every part of a multi-part EXR: Blender 5.0 writes multilayer EXRs as one
     # part per pass unless ``use_exr_interleave`` is set (reading part 0 alone
     # gives only Combined).
-    columns, names, attrs = [], [], {}
+    columns, names, attrs, halves = [], [], {}, set()
     size = None
     try:
         sub = 0
@@ -72,9 +73,12 @@ def read_layers(path: str, layer: str | None = None) -> tuple[dict, dict]:
                 raise ImageFileError(f"{path}: unreadable pixel data, the file is truncated or "
                                      f"corrupt ({_oiio_error(inp)})")
             px = np.asarray(px, np.float32).reshape(spec.height, spec.width, spec.nchannels)
+            formats = list(spec.channelformats) or [spec.format] * spec.nchannels
             for c, name in enumerate(spec.channelnames):
                 columns.append(px[:, :, c])
                 names.append(name)
+                if str(formats[c]) == "half":
+                    halves.add(name)
             for a in spec.extra_attribs:
                 if isinstance(a.value, str):
                     attrs.setdefault(a.name, a.value)
@@ -107,8 +111,10 @@ def read_layers(path: str, layer: str | None = None) -> tuple[dict, dict]:
             pname, ch = "", parts[0]
         groups.setdefault(pname, []).append((i, ch))
     passes = {k: pixels[:, :, [i for i, _ in v]] for k, v in groups.items()}
+    half = sorted(k for k, v in groups.items() if any(names[i] in halves for i, _ in v))
     meta = {"width": spec_w, "height": spec_h, "layer": layer, "layers": layers,
-            "channels": {k: [c for _, c in v] for k, v in groups.items()}, "attributes": attrs}
+            "channels": {k: [c for _, c in v] for k, v in groups.items()}, "attributes": attrs,
+            "half": half}
     return passes, meta
 
 
@@ -123,20 +129,43 @@ def read_rgb(path: str) -> np.ndarray:
                          f"(passes: {sorted(passes)})")
 
 
+#: EXR codecs that keep every value (the others quantise: PXR24 floats to 24
+#: bits, B44 and DWA halves and colour channels)
+LOSSLESS_CODECS = ("zip", "zips", "piz", "rle", "none")
+#: how an output EXR may store its result passes: as the scene's output
+#: settings say, or half or full float for every render
+EXR_DEPTHS = ("scene", "half", "full")
+#: the largest finite half float
+HALF_MAX = 65504.0
+
+
+def as_half(arr) -> np.ndarray:
+    """``arr`` (float32) as a half-float EXR channel stores it: clamped to
+    +-``HALF_MAX``, rounded to the nearest half."""
+    arr = np.clip(np.asarray(arr, np.float32), -HALF_MAX, HALF_MAX)
+    return arr.astype(np.float16).astype(np.float32)
+
+
 def write_layers(path: str, passes: dict, layer: str = "ViewLayer", attributes: dict | None = None,
-                 half: bool = False) -> None:
+                 half=False, codec: str = "zip") -> None:
     """Write a multilayer EXR atomically (temporary file in the same folder, then
     rename).  ``passes`` maps pass name to (H, W) or (H, W, C) arrays, or to
     ``(array, channel_letters)`` to choose channel names."""
-    write_multilayer(path, [(layer, passes)], attributes, half)
+    write_multilayer(path, [(layer, passes)], attributes, half, codec)
 
 
-def write_multilayer(path: str, layers, attributes: dict | None = None, half: bool = False) -> None:
+def write_multilayer(path: str, layers, attributes: dict | None = None, half=False,
+                     codec: str = "zip") -> None:
     """:func:`write_layers` for several layers: ``layers`` is a sequence of
     ``(layer name, passes)``, written in that order (readers take the first
-    as the file's own, :func:`read_layers`).  All passes share one size."""
+    as the file's own, :func:`read_layers`).  All passes share one size.
+    ``half``: True writes every channel as half float, a collection of pass
+    names only those passes (any layer), False none; ``codec``: one of
+    ``LOSSLESS_CODECS`` (ValueError otherwise)."""
+    if codec not in LOSSLESS_CODECS:
+        raise ValueError(f"EXR codec {codec!r} is not one of {', '.join(LOSSLESS_CODECS)}")
     layers = list(layers)
-    arrays, names = [], []
+    arrays, names, formats = [], [], []
     shape = None
     for layer, pname, value in [(ly, k, v) for ly, passes in layers for k, v in passes.items()]:
         arr, letters = value if isinstance(value, tuple) else (value, None)
@@ -148,17 +177,23 @@ def write_multilayer(path: str, layers, attributes: dict | None = None, half: bo
         elif arr.shape[:2] != shape:
             raise ValueError(f"pass {pname!r} is {arr.shape[:2]}, others {shape}")
         letters = letters or CHANNEL_LETTERS.get(arr.shape[2]) or tuple(str(i) for i in range(arr.shape[2]))
+        in_half = half is True or (not isinstance(half, bool) and pname in half)
+        if in_half:  # beyond half's largest finite value a value would become inf
+            arr = as_half(arr)
         for c, letter in enumerate(letters):
             names.append(f"{layer}.{pname}.{letter}" if layer else f"{pname}.{letter}")
             arrays.append(arr[:, :, c])
+            formats.append("half" if in_half else "float")
     if len(set(names)) != len(names):
         raise ValueError("two channels share a name (a layer given twice?)")
     attributes = dict(attributes or {})
     attributes[LAYERS_ATTRIBUTE] = json.dumps([name for name, _ in layers])
     data = np.ascontiguousarray(np.stack(arrays, axis=-1))
-    spec = oiio.ImageSpec(shape[1], shape[0], len(names), "half" if half else "float")
+    spec = oiio.ImageSpec(shape[1], shape[0], len(names), "half" if half is True else "float")
     spec.channelnames = names
-    spec.attribute("compression", "zip")
+    if len(set(formats)) > 1:
+        spec.channelformats = [oiio.TypeDesc(f) for f in formats]
+    spec.attribute("compression", codec)
     for k, v in (attributes or {}).items():
         spec.attribute(k, str(v))
     _atomic_write(path, spec, data)

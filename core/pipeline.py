@@ -179,7 +179,7 @@ class Progress:
     """One step of the loop, for progress bars and batch log lines.  ``work``:
     the computation the loop waits for next (see :class:`Work`), or None."""
 
-    stage: str            # "initial", "adapt", "plan", "render", "checkpoint", "done"
+    stage: str            # "initial", "adapt", "plan", "render", "saving", "checkpoint", "done"
     iteration: int
     fraction: float       # 0..1 of the sample budget rendered
     message: str
@@ -323,7 +323,7 @@ class AdaptiveRun:
             yield from self._drop_uninformative()
             if selects(self.method):
                 yield from self._select()
-            self._save_checkpoint()
+            yield from self._checkpoint()
         tol = max(1, int(0.009 * self.budget))  # the total lands within 1 % of the budget
         target = opts.target_error > 0
         while (target or self.iteration < opts.iterations) and self.remaining > tol \
@@ -352,7 +352,7 @@ class AdaptiveRun:
                     break
             self.history.append(entry)
             self.iteration += 1
-            self._save_checkpoint()
+            yield from self._checkpoint()
             yield Progress("checkpoint", self.iteration, self._fraction(),
                            f"iteration {self.iteration} done, {self.samples_rendered / self.pixels:.2f} spp")
         self.sampling_seconds = self.elapsed()
@@ -700,6 +700,15 @@ class AdaptiveRun:
         return result
 
     # ------------------------------------------------------------- checkpoint
+    def _checkpoint(self):
+        """Steps that write the checkpoint as a Work (packing and writing it
+        takes seconds at 1920x1080: off the UI's main thread)."""
+        if not self.checkpoint_path or self.buffers is None:
+            return
+        work = Work(self._save_checkpoint, f"iteration {self.iteration}: writing the checkpoint")
+        yield Progress("saving", self.iteration, self._fraction(), work.label, work=work)
+        work.result()
+
     def _save_checkpoint(self) -> None:
         if not self.checkpoint_path or self.buffers is None:
             return

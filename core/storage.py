@@ -13,18 +13,34 @@ Two serialisations of the same per-pixel statistics (``core/buffers.py``):
   of plain arrays plus JSON, written atomically after every iteration.  The
   method's sampler state is stored as JSON with tagged arrays, tuples and numpy
   random generators; nothing is unpickled when a checkpoint is read, so a
-  tampered file on shared storage cannot run code.
+  tampered file on shared storage cannot run code.  Arrays are stored compactly
+  and losslessly (:func:`pack_array`: constants as one value, counts in the
+  smallest unsigned integer type, compressible arrays deflated), so a resumed
+  run is bit-identical to an uninterrupted one.
 """
 from __future__ import annotations
 
 import json
+import zlib
 
 import numpy as np
 
+from . import parallel
 from .buffers import Buffers, Stat
 from .io import VECTOR_LETTERS, atomic_path
 
-CHECKPOINT_VERSION = 2
+CHECKPOINT_VERSION = 3
+#: versions :func:`load_checkpoint` reads (2: every array stored as it was)
+READABLE_VERSIONS = (2, 3)
+
+#: arrays smaller than this are stored as they are (packing would not pay)
+PACK_MIN_ELEMENTS = 4096
+#: an array is deflated when a sample of it compresses below this fraction
+DEFLATE_BELOW = 0.5
+#: bytes of the sample that decides (from the array's start, middle and end)
+DEFLATE_SAMPLE = 3 * 65536
+#: dtypes a packed array may restore to (numeric only: nothing else is read)
+_KINDS = "biuf"
 
 #: random generators a checkpoint may restore (numpy's own bit generators)
 _BIT_GENERATORS = ("PCG64", "PCG64DXSM", "Philox", "SFC64", "MT19937")
@@ -120,11 +136,93 @@ def save_checkpoint(path: str, buf: Buffers, arrays: dict, meta: dict, state: di
     for name, arr in arrays.items():
         out[f"array__{name}"] = np.asarray(arr)
     state_json = _encode(state, out, "state")
-    meta = dict(meta, version=CHECKPOINT_VERSION)
-    out["meta"] = np.frombuffer(json.dumps(meta).encode(), np.uint8)
-    out["state"] = np.frombuffer(json.dumps(state_json).encode(), np.uint8)
+    keys = list(out)
+    packed = parallel.map_ordered(lambda k: pack_array(out[k]), keys)
+    stored, encoding = {}, {}
+    for key, (arr, enc) in zip(keys, packed):
+        stored[key] = arr
+        if enc is not None:
+            encoding[key] = enc
+    meta = dict(meta, version=CHECKPOINT_VERSION, encoding=encoding)
+    stored["meta"] = np.frombuffer(json.dumps(meta).encode(), np.uint8)
+    stored["state"] = np.frombuffer(json.dumps(state_json).encode(), np.uint8)
     with atomic_path(path, ".npz") as tmp:
-        np.savez(tmp, **out)
+        np.savez(tmp, **stored)
+
+
+def pack_array(arr: np.ndarray):
+    """``(stored, encoding)``: a lossless compact form of ``arr`` for the
+    checkpoint, and the JSON that :func:`unpack_array` restores it from (None:
+    stored as it is).  In order: a constant array (bitwise) is one element; a
+    non-negative integer-valued array (counts: samples, groups, next offsets;
+    no -0.0) is the smallest unsigned type that holds it; an array whose
+    sample (start, middle, end) deflates below ``DEFLATE_BELOW`` is deflated
+    whole (zlib level 1: flat albedo, normals, alpha; noisy colour does not
+    compress and is not tried in full).  Arrays under ``PACK_MIN_ELEMENTS``
+    and non-numeric ones stay as they are."""
+    arr = np.asarray(arr)
+    if arr.dtype.kind not in _KINDS or arr.size < PACK_MIN_ELEMENTS:
+        return arr, None
+    arr = np.ascontiguousarray(arr)
+    enc = {"dtype": arr.dtype.str, "shape": list(arr.shape)}
+    flat = arr.reshape(-1)
+    bits = flat.view(np.dtype(f"u{arr.dtype.itemsize}")) if arr.dtype.kind != "b" else flat
+    if np.all(bits == bits[0]):
+        return flat[:1].copy(), dict(enc, form="constant")
+    if arr.dtype.kind in "iuf":
+        lo, hi = (flat.min(), flat.max()) if arr.dtype.kind != "f" or np.isfinite(flat).all() else (-1, -1)
+        if lo >= 0 and hi < 2 ** 32 and (arr.dtype.kind != "f" or (np.array_equal(flat, np.floor(flat))
+                                                                    and not np.signbit(flat).any())):
+            small = next(t for t in (np.uint8, np.uint16, np.uint32) if hi <= np.iinfo(t).max)
+            if np.dtype(small).itemsize < arr.dtype.itemsize:
+                return arr.astype(small), dict(enc, form="unsigned")
+    raw = memoryview(flat.view(np.uint8))
+    n = len(raw)
+    if n > DEFLATE_SAMPLE:
+        third = DEFLATE_SAMPLE // 3
+        sample = b"".join(bytes(raw[i:i + third]) for i in (0, (n - third) // 2, n - third))
+    else:
+        sample = bytes(raw)
+    if len(zlib.compress(sample, 1)) >= DEFLATE_BELOW * len(sample):
+        return arr, None
+    return np.frombuffer(zlib.compress(raw, 1), np.uint8), dict(enc, form="deflate")
+
+
+def unpack_array(stored: np.ndarray, enc: dict | None) -> np.ndarray:
+    """The array :func:`pack_array` packed (a new array).  StorageError for
+    an encoding it does not know, a non-numeric dtype, or data that does not
+    fill the stated shape (a damaged or crafted file: nothing is trusted, a
+    deflated array never inflates past its stated size)."""
+    if enc is None:
+        return stored.copy()
+    try:
+        dtype = np.dtype(enc["dtype"])
+        shape = tuple(int(v) for v in enc["shape"])
+        form = enc["form"]
+    except (KeyError, TypeError, ValueError) as exc:
+        raise StorageError(f"unreadable array encoding {enc!r} ({exc})") from None
+    if dtype.kind not in _KINDS or any(v < 0 for v in shape):
+        raise StorageError(f"array encoding with dtype {dtype} and shape {shape} refused")
+    count = int(np.prod(shape, dtype=np.int64))
+    if form == "constant":
+        if stored.size != 1:
+            raise StorageError("a constant array must store one value")
+        return np.full(shape, stored.reshape(-1)[0].astype(dtype), dtype)
+    if form == "unsigned":
+        if stored.dtype.kind != "u" or stored.size != count:
+            raise StorageError(f"packed counts do not fill {shape}")
+        return stored.reshape(shape).astype(dtype)
+    if form == "deflate":
+        size = count * dtype.itemsize
+        try:
+            d = zlib.decompressobj()
+            raw = d.decompress(stored.tobytes(), size + 1)
+        except zlib.error as exc:
+            raise StorageError(f"deflated array is damaged ({exc})") from None
+        if len(raw) != size or d.unconsumed_tail:
+            raise StorageError(f"deflated array does not hold {shape} {dtype}")
+        return np.frombuffer(raw, dtype).reshape(shape).copy()
+    raise StorageError(f"unknown array encoding {form!r}")
 
 
 def load_checkpoint(path: str):
@@ -140,22 +238,37 @@ def load_checkpoint(path: str):
     if "method_state" in files:
         raise StorageError(f"{path}: the checkpoint holds a pickled method state; refused (a "
                            "checkpoint is read as plain arrays and JSON only, it never runs code)")
-    if meta.get("version") != CHECKPOINT_VERSION:
-        raise StorageError(f"{path}: checkpoint version {meta.get('version')} is not {CHECKPOINT_VERSION}")
+    if meta.get("version") not in READABLE_VERSIONS:
+        raise StorageError(f"{path}: checkpoint version {meta.get('version')} is not "
+                           f"{' or '.join(map(str, READABLE_VERSIONS))}")
     try:
-        b = Buffers(data["n"].copy(), data["k"].copy(),
-                    Stat(data["color_mean"].copy(), data["color_m2"].copy()))
+        encoding = meta.get("encoding") or {}
+        if not isinstance(encoding, dict):
+            raise StorageError("its array encodings are not a mapping")
+        data = _Unpacked(data, encoding)
+        b = Buffers(data["n"], data["k"], Stat(data["color_mean"], data["color_m2"]))
         for key in sorted(files):
             if key.startswith("feat_mean__"):
                 name = key[len("feat_mean__"):]
-                b.features[name] = Stat(data[key].copy(), data["feat_m2__" + name].copy())
-        arrays = {k[len("array__"):]: data[k].copy() for k in files if k.startswith("array__")}
+                b.features[name] = Stat(data[key], data["feat_m2__" + name])
+        arrays = {k[len("array__"):]: data[k] for k in files if k.startswith("array__")}
         state = _decode(json.loads(bytes(data["state"]).decode()), data)
-    except StorageError:
-        raise
+    except StorageError as exc:
+        raise StorageError(f"{path}: damaged checkpoint ({exc})" if not str(exc).startswith(path)
+                           else str(exc)) from None
     except Exception as exc:
         raise StorageError(f"{path}: damaged checkpoint ({type(exc).__name__}: {exc})") from None
     return b, arrays, meta, state
+
+
+class _Unpacked:
+    """``data[key]``: a new, unpacked copy of the checkpoint's array ``key``."""
+
+    def __init__(self, data, encoding: dict):
+        self.data, self.encoding = data, encoding
+
+    def __getitem__(self, key):
+        return unpack_array(self.data[key], self.encoding.get(key))
 
 
 def _encode(value, arrays: dict, key: str):
@@ -194,7 +307,7 @@ def _decode(obj, data):
     if not isinstance(obj, dict):
         return obj
     if "__array__" in obj:
-        return data[obj["__array__"]].copy()
+        return data[obj["__array__"]]
     if "__tuple__" in obj:
         return tuple(_decode(v, data) for v in obj["__tuple__"])
     if "__dict__" in obj:

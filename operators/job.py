@@ -267,14 +267,66 @@ class Output:
     summary: dict
     extra_layers: list = dataclasses.field(default_factory=list)  # [(layer, passes)] after ours
     composite: np.ndarray | None = None  # the compositor's (H, W, 4) image, when it ran
+    exr: "ExrFormat" = None  # how the EXR is stored (default: ExrFormat())
+
+
+#: passes of our EXR that are results to look at (the result, the compositor's
+#: image, the error and variance images), not statistics that ``denoise`` or a
+#: resume reads: only these may be half float
+RESULT_PASSES = frozenset({"Combined", "Error", "Variance"})
+
+EXR_DEPTHS = imageio.EXR_DEPTHS
+
+
+@dataclasses.dataclass(frozen=True)
+class ExrFormat:
+    """How the output EXR stores its passes.  ``half``: the result passes
+    (``RESULT_PASSES``) in half float, as Blender's Float (Half) stores colour
+    passes while it keeps data passes full (checked with bpy 4.5: Combined and
+    Denoising Albedo half, Depth and Normal float); the statistics that
+    re-runs read stay full float always.  ``codec``: a lossless EXR codec."""
+
+    half: bool = True
+    codec: str = "zip"
+    note: str = ""  # why the scene's own setting was not taken, if it was not
+
+    @property
+    def label(self) -> str:
+        return f"{'half' if self.half else 'full'} float results, {self.codec.upper()}"
+
+
+def exr_format(scene=None, depth: str = "scene") -> ExrFormat:
+    """The :class:`ExrFormat` for ``depth`` (``EXR_DEPTHS``).  ``"scene"``: a
+    scene whose output is OpenEXR gives its Color Depth and Codec (a lossy
+    codec - PXR24, B44, DWA - becomes ZIP: the statistics must stay exact);
+    any other output format (PNG by default), or no scene, gives half float
+    results with ZIP.  Half's relative step, 2^-11, is 20x below the 1 % RMS
+    error of the smallest relMSE the benchmark resolves (1e-4).  Main thread
+    (reads the scene)."""
+    if depth not in EXR_DEPTHS:
+        raise JobError(f"EXR depth {depth!r} is not one of {', '.join(EXR_DEPTHS)}")
+    if depth != "scene":
+        return ExrFormat(half=depth == "half")
+    settings = getattr(getattr(scene, "render", None), "image_settings", None)
+    if settings is None or "OPEN_EXR" not in str(getattr(settings, "file_format", "")):
+        return ExrFormat()
+    half = str(getattr(settings, "color_depth", "32")) == "16"
+    codec = str(getattr(settings, "exr_codec", "ZIP")).lower()
+    if codec in imageio.LOSSLESS_CODECS:
+        return ExrFormat(half, codec)
+    return ExrFormat(half, "zip", f"the scene's EXR codec {codec.upper()} is lossy; ZIP keeps the "
+                                   "statistics exact")
 
 
 def write_output(output: Output, path: str) -> None:
     """Write the multilayer EXR of ``output`` to ``path`` atomically
     (:func:`core.io.write_multilayer`: our layer first, then the others, e.g.
-    ``Composite``); the caller checked that it may."""
+    ``Composite``), stored as ``output.exr`` says; the caller checked that
+    it may."""
+    fmt = output.exr or ExrFormat()
     imageio.write_multilayer(path, [(output.layer, output.passes)] + list(output.extra_layers),
-                             attributes=output.attributes)
+                             attributes=output.attributes,
+                             half=RESULT_PASSES if fmt.half else False, codec=fmt.codec)
 
 
 #: the run's own estimate of its relMSE (for the panel's summary and the CLI's JSON)
@@ -350,7 +402,7 @@ class RenderJob:
                  overwrite: bool = False, resume: bool = False, preview: bool = True,
                  keep_checkpoint: bool = False, method=None, prior=None, reconstructor=None,
                  executor_factory=None, keep_denoise_passes: bool = True, compositor: bool = True,
-                 checkpoint: str | None = None):
+                 checkpoint: str | None = None, exr_depth: str = "scene"):
         """``out``: the output EXR, or None to write nothing (no checkpoint,
         no outputs: the API); ``method``: a :class:`core.method.Method` object
         (default: the registered ``options.method``); ``prior``: the run's
@@ -363,10 +415,12 @@ class RenderJob:
         render of the scene would (``addon/compositor.py``); what it cannot
         run on is said in the summary's ``compositor`` and the EXR stays raw;
         ``checkpoint``: the checkpoint of a job without ``out`` (one view
-        layer of a :class:`LayersJob`, which writes the outputs itself)."""
+        layer of a :class:`LayersJob`, which writes the outputs itself);
+        ``exr_depth``: how the EXR stores its result passes (:func:`exr_format`)."""
         from ..addon import executor as ex
         self.ex = ex
         ex.check_scene(scene, view_layer)
+        self.exr = exr_format(scene, exr_depth)
         self.scene, self.view_layer = scene, view_layer
         self.layer_name = view_layer.name  # output() may run off the main thread: no RNA access there
         self.composite_plan, self.compositor_note = (composite_plan(scene, [view_layer.name])
@@ -522,12 +576,13 @@ class RenderJob:
         if run.dropped:
             summary["dropped_passes"] = list(run.dropped)
         summary["compositor"] = self.compositor_note
+        summary["exr"] = self.exr.label + (f" ({self.exr.note})" if self.exr.note else "")
         if self.options.target_error > 0:  # the estimate at each check, and whether it got there
             summary.update(target_error=self.options.target_error, target_met=bool(run.target_met),
                            estimates=[{"spp": a, "estimated_relmse": b} for a, b in run.estimates])
         if self.reference is not None:
             summary.update(metrics.summary(image, error, self.reference))
-        self._output = Output(passes, self.layer_name, attrs, summary)
+        self._output = Output(passes, self.layer_name, attrs, summary, exr=self.exr)
         self.summary = summary
         return self._output
 
@@ -809,7 +864,7 @@ class LayersJob:
                     extra = [(imageio.COMPOSITE_LAYER, {"Combined": comp})]
         first = outs[0]
         merged = Output(first.passes, first.layer, dict(first.attributes), self._summary(done, outs, note, partial),
-                        [(o.layer, o.passes) for o in outs[1:]] + extra, comp)
+                        [(o.layer, o.passes) for o in outs[1:]] + extra, comp, first.exr)
         merged.attributes["cycles_adaptive/view_layers"] = json.dumps([j.layer_name for j in done])
         self.composite = comp
         t = time.perf_counter()
@@ -853,7 +908,7 @@ class LayersJob:
 
 
 def denoise_output(path: str, method: str, params: dict | None = None, guard_z: float | None = None,
-                   reference: str | None = None) -> Output:
+                   reference: str | None = None, exr_depth: str = "half") -> Output:
     """Re-run ``method`` on the passes stored in ``path`` (an output EXR of a
     render, or a Blender multilayer render with Combined and Denoising
     passes), through the consistency guard (``guard_z``, default the loop's):
@@ -889,9 +944,12 @@ def denoise_output(path: str, method: str, params: dict | None = None, guard_z: 
                "preview_view_transform": None,
                "no_variance_fraction": float(1.0 - buf.has_variance.mean()), "warnings": warnings}
     _info_fields(summary, result.info)
+    fmt = exr_format(None, "half" if exr_depth == "scene" else exr_depth)
+    summary["exr"] = fmt.label
     if ref is not None:
         summary.update(metrics.summary(image, error, ref))
-    return Output(out_passes, meta.get("layer") or "ViewLayer", {"cycles_adaptive/method": method}, summary)
+    return Output(out_passes, meta.get("layer") or "ViewLayer", {"cycles_adaptive/method": method}, summary,
+                  exr=fmt)
 
 
 #: what each denoiser does where a pixel has no variance estimate (one sample

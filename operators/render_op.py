@@ -23,7 +23,7 @@ STEP_SECONDS = 0.05  # work per timer tick before handing control back to the UI
 
 #: status-bar words of the loop's stages (``core.pipeline.Progress.stage``)
 STAGE_WORDS = {"initial": "Rendering", "adapt": "Adapting", "plan": "Planning", "render": "Rendering",
-               "checkpoint": "Saving checkpoint", "done": "Sampling done", "reconstruct": "Reconstructing",
+               "saving": "Saving checkpoint", "checkpoint": "Iteration done", "done": "Sampling done", "reconstruct": "Reconstructing",
                "write": "Writing"}
 
 
@@ -229,11 +229,12 @@ class CYCLESADAPTIVE_OT_render(bpy.types.Operator):
                              temporal=s.temporal, overwrite=s.overwrite,
                              reproject_params=method_params(s, "reproject"),
                              temporal_params=method_params(s, "temporal"),
-                             view_layers=layers, compositor=s.use_compositor)
+                             view_layers=layers, compositor=s.use_compositor, exr_depth=s.exr_depth)
         out = path or ensure_output_folder(default_out(scene, opts.method, scene.frame_current))
+        kw = dict(overwrite=s.overwrite, compositor=s.use_compositor, exr_depth=s.exr_depth)
         if len(layers) > 1:
-            return LayersJob(scene, layers, opts, out, overwrite=s.overwrite, compositor=s.use_compositor)
-        return RenderJob(scene, layers[0], opts, out, overwrite=s.overwrite, compositor=s.use_compositor)
+            return LayersJob(scene, layers, opts, out, **kw)
+        return RenderJob(scene, layers[0], opts, out, **kw)
 
 
 register, unregister = bpy.utils.register_classes_factory((CYCLESADAPTIVE_OT_render,))

@@ -18,6 +18,7 @@ from cycles_adaptive.operators.job import RenderJob  # noqa: E402
 
 def _job(scene, tmp_path, name="out.exr", **kw):
     opts = Options(method="var", spp=4, initial_spp=2, subsets=2, iterations=1, seed=1)
+    kw.setdefault("exr_depth", "full")  # exact comparisons with the composite
     job = RenderJob(scene, bpy.context.view_layer, opts, str(tmp_path / name), **kw)
     for _ in job.steps():
         pass
@@ -119,7 +120,7 @@ def test_two_view_layers_one_exr_layer_each_and_the_compositor_mixes_them(tmp_pa
     assert [vl.name for vl in layers] == ["ViewLayer", "Back"]
     opts = Options(method="var", spp=4, initial_spp=2, subsets=2, iterations=1, seed=1)
     out = str(tmp_path / "two.exr")
-    job = LayersJob(scene, layers, opts, out)
+    job = LayersJob(scene, layers, opts, out, exr_depth="full")
     msgs = [p.message for p in job.steps()]
     assert any(m.startswith("view layer Back (2/2)") for m in msgs)
     summary = job.finish()

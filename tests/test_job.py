@@ -144,7 +144,11 @@ def test_esc_during_adaptation_returns_without_waiting_and_writes_the_sample_mea
     method, threads = GatedLP(), Threads()
     job = _gated_job(tmp_path, scene, method)
     st = Stepper(job, slice_seconds=60.0, start=threads)  # only a Work ends a slice early
-    assert st.step() is False and st.stage == "adapt" and st.pending is not None
+    assert st.step() is False and st.stage == "saving"  # the initial pass's checkpoint, off the main thread
+    while st.stage == "saving":
+        threads.join()
+        assert st.step() is False
+    assert st.stage == "adapt" and st.pending is not None
     assert st.step() is False  # still adapting: the UI gets control back at once
     summary = st.cancel()
     pending_done = method.gate.is_set()
@@ -154,7 +158,8 @@ def test_esc_during_adaptation_returns_without_waiting_and_writes_the_sample_mea
     assert summary["partial"] and not summary["reconstructed"] and 0 < summary["spp_mean"] < 8
     assert np.isfinite(summary["estimated_relmse"]) and summary["estimated_relmse"] >= 0
     passes, meta = imageio.read_layers(job.out)
-    assert np.array_equal(passes["Combined"][..., :3], passes["Noisy"][..., :3])  # the sample mean
+    # the sample mean (the result stored in half float)
+    assert np.array_equal(passes["Combined"][..., :3], imageio.as_half(passes["Noisy"][..., :3]))
     assert os.path.isfile(job.out + ".checkpoint.npz")  # kept for --resume
     assert all(t is not threading.main_thread() for t in method.threads)
 
@@ -204,3 +209,62 @@ def test_estimated_relmse_is_finite_for_hostile_input():
     assert np.isfinite(v) and v >= 0
     assert estimated_relmse(np.zeros((0, 0, 3)), np.zeros((0, 0))) == 0.0
     assert estimated_relmse(np.zeros((2, 2, 3)), np.full((2, 2), 1e300)) == pytest.approx(1e302)
+
+
+def test_a_run_closed_after_another_file_was_opened_does_not_touch_the_old_scene():
+    """A run's generator closed (or garbage-collected) after Blender opened
+    another file restores nothing: the old scene's settings are freed memory
+    (this crashed Blender with a segmentation fault before)."""
+    scene = build_scene(24, 16)
+    job = RenderJob(scene, bpy.context.view_layer, Options(method="var", spp=4, initial_spp=2, subsets=2), None)
+    steps = job.steps()
+    for st in steps:
+        if st.stage == "initial":  # inside the executor: the scene's settings are changed
+            break
+    assert scene.cycles.samples != 16
+    fresh = build_scene(20, 12)  # opens a new file: the old scene is freed
+    steps.close()
+    assert fresh.cycles.samples == 16 and fresh.render.resolution_x == 20
+
+
+@pytest.mark.parametrize("fmt, depth, codec, half, stored", [
+    ("OPEN_EXR", "32", "PIZ", False, "piz"),
+    ("OPEN_EXR", "16", "ZIP", True, "zip"),
+    ("OPEN_EXR", "16", "DWAA", True, "zip"),  # lossy: the statistics must stay exact
+    ("PNG", "8", None, True, "zip"),
+])
+def test_the_exr_follows_the_scene_output_settings(fmt, depth, codec, half, stored):
+    scene = build_scene(8, 8)
+    im = scene.render.image_settings
+    im.file_format = fmt
+    im.color_depth = depth
+    if codec:
+        im.exr_codec = codec
+    f = job_mod.exr_format(scene, "scene")
+    assert (f.half, f.codec) == (half, stored)
+    assert ("lossy" in f.note) == (codec == "DWAA")
+    assert job_mod.exr_format(scene, "full").half is False and job_mod.exr_format(scene, "half").half is True
+    with pytest.raises(job_mod.JobError, match="EXR depth"):
+        job_mod.exr_format(scene, "double")
+
+
+def test_half_results_halve_the_result_passes_and_keep_the_statistics_exact(tmp_path):
+    """The same run written with ``exr_depth`` half and full: identical
+    statistics, the result passes the half of the full file's, a smaller file."""
+    scene = build_scene(32, 24)
+    files = {}
+    for depth in ("full", "half"):
+        opts = Options(method="var", spp=4, initial_spp=2, subsets=2, iterations=1, seed=2)
+        job = RenderJob(scene, bpy.context.view_layer, opts, str(tmp_path / f"{depth}.exr"), exr_depth=depth,
+                        preview=False)
+        for _ in job.steps():
+            pass
+        summary = job.finish()
+        assert summary["exr"].startswith(f"{depth} float results")
+        files[depth] = imageio.read_layers(job.out)
+    (full, fmeta), (half, hmeta) = files["full"], files["half"]
+    assert fmeta["half"] == [] and hmeta["half"] == sorted(job_mod.RESULT_PASSES)
+    for name in full:
+        expect = imageio.as_half(full[name]) if name in job_mod.RESULT_PASSES else full[name]
+        assert np.array_equal(half[name], expect), name
+    assert os.path.getsize(tmp_path / "half.exr") < os.path.getsize(tmp_path / "full.exr")

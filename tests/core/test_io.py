@@ -103,3 +103,42 @@ def test_a_file_without_our_order_reads_its_first_layer_other_than_composite(tmp
     out.close()
     passes, meta = imageio.read_layers(path)
     assert meta["layer"] == "ViewLayer" and np.all(passes["Combined"] == 5.0)
+
+
+def test_half_passes_are_stored_as_half_and_the_rest_exactly(tmp_path):
+    """``half`` names the passes stored in 16-bit float (every layer's):
+    they read back as the nearest half, clamped to half's range instead of
+    becoming inf; every other pass reads back bit for bit."""
+    rng = np.random.default_rng(1)
+    result = rng.random((6, 5, 4)).astype(np.float32) * 3
+    result[0, 0, 0], result[0, 1, 0] = 1e6, -1e6  # beyond half's largest finite value
+    stats = (rng.random((6, 5, 3)) * 1e-7).astype(np.float32)  # would underflow in half
+    path = str(tmp_path / "h.exr")
+    imageio.write_multilayer(path, [("A", {"Combined": result, "M2": stats}), ("B", {"Combined": result})],
+                             half={"Combined"})
+    for layer in ("A", "B"):
+        passes, meta = imageio.read_layers(path, layer)
+        assert meta["half"] == ["Combined"]
+        assert np.array_equal(passes["Combined"], imageio.as_half(result))
+        assert np.isfinite(passes["Combined"]).all() and passes["Combined"][0, 0, 0] == imageio.HALF_MAX
+        assert np.abs(passes["Combined"] - result)[1:].max() <= 2.0 ** -11 * np.abs(result[1:]).max()
+    passes, meta = imageio.read_layers(path, "A")
+    assert np.array_equal(passes["M2"], stats)
+    imageio.write_layers(path, {"Combined": result}, half=False)
+    assert imageio.read_layers(path)[1]["half"] == []
+
+
+@pytest.mark.parametrize("codec", ["dwaa", "b44", "pxr24", "jpeg"])
+def test_lossy_or_unknown_codecs_are_refused(tmp_path, codec):
+    with pytest.raises(ValueError, match="not one of"):
+        imageio.write_layers(str(tmp_path / "x.exr"), {"Combined": np.zeros((2, 2, 4))}, codec=codec)
+    assert not list(tmp_path.iterdir())
+
+
+@pytest.mark.parametrize("codec", ["zip", "piz", "none"])
+def test_lossless_codecs_keep_every_value(tmp_path, codec):
+    arr = np.random.default_rng(2).random((8, 9, 3)).astype(np.float32)
+    path = str(tmp_path / f"{codec}.exr")
+    imageio.write_layers(path, {"Noisy": arr}, codec=codec)
+    passes, meta = imageio.read_layers(path)
+    assert np.array_equal(passes["Noisy"], arr) and meta["attributes"].get("compression", codec) == codec
