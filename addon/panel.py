@@ -99,6 +99,7 @@ class CYCLESADAPTIVE_PT_panel(_RenderPanel, bpy.types.Panel):
         col.prop(s, "frame_range")
         if s.frame_range:
             col.prop(s, "temporal")
+            col.prop(s, "seed_mode")
         col.prop(s, "overwrite")
         col.prop(s, "use_compositor")
         _draw_view_layers(layout, scene)

@@ -179,23 +179,27 @@ def load_references(scene: str, frames, pct: int, spp: int, directory: str, shap
 
 
 # -------------------------------------------------------------------- runs
+def _seeded(name: str, seed_mode: str) -> str:
+    return name if seed_mode == "animated" else f"{name} ({seed_mode} seed)"
+
+
 def run_ours(scene, vl, method: str, temporal: str, budget: int, frames, seed: int, tmpdir: str,
-             max_seconds: float = 0.0) -> tuple:
+             max_seconds: float = 0.0, seed_mode: str = "animated") -> tuple:
     """One sequence of our loop through FramesJob; (record, list of images).
 
     Seconds per frame are the job's total minus writing its EXR (the loop,
     executor set-up, renders, reconstruction: what the benchmark times)."""
     from ..core.pipeline import Options
     from ..operators.job import FramesJob
-    rec = {"kind": "method", "name": method if temporal == "none" else f"{method}+{temporal}",
-           "method": method, "temporal": temporal, "budget": int(budget)}
+    rec = {"kind": "method", "name": _seeded(method if temporal == "none" else f"{method}+{temporal}", seed_mode),
+           "method": method, "temporal": temporal, "budget": int(budget), "seed_mode": seed_mode}
     images, seconds, spp, reused = [], [], [], []
     try:
         opts = Options(method=method, spp=float(budget), frame=int(frames[0]), seed=int(seed),
                        max_seconds=float(max_seconds))
-        pattern = os.path.join(tmpdir, f"{method}_{temporal}_####.exr")
+        pattern = os.path.join(tmpdir, f"{method}_{temporal}_{seed_mode}_####.exr")
         fj = FramesJob(scene, vl, opts, pattern, frames, temporal=temporal, overwrite=True,
-                       preview=False, keep_denoise_passes=False)
+                       preview=False, keep_denoise_passes=False, seed_mode=seed_mode)
         before = 0.0
         for item in fj.steps():
             if isinstance(item, dict):
@@ -218,11 +222,13 @@ def run_ours(scene, vl, method: str, temporal: str, budget: int, frames, seed: i
     return rec, images
 
 
-def run_peers(scene, vl, budget: int, frames, seed: int, ref0, target_seconds, cfg) -> list:
+def run_peers(scene, vl, budget: int, frames, seed: int, ref0, target_seconds, cfg,
+              seed_mode: str = "animated") -> list:
     """The peers on every frame: plain Cycles uniform, OIDN, Cycles adaptive
     sampling + OIDN; a list of (record, images).
 
-    Each frame gets the seed ``seed + frame``, as FramesJob's runs do.  The
+    Each frame gets the seed ``seed + frame`` (``seed`` with ``seed_mode``
+    ``"fixed"``), as FramesJob's runs do.  The
     adaptive peer's noise threshold is searched once, on the first frame, so
     its render time matches ``target_seconds`` (the median per-frame time of
     our runs at this budget; :func:`bench.peers.search_threshold`), and then
@@ -233,14 +239,18 @@ def run_peers(scene, vl, budget: int, frames, seed: int, ref0, target_seconds, c
     pattern = c.sampling_pattern
     max_spp = int(cfg["max_samples_factor"]) * int(budget)
 
+    def frame_seed(f):
+        return int(seed + (f if seed_mode == "animated" else 0))
+
     def sequence(name, render, extra=None):
-        rec = {"kind": "peer", "name": name, "temporal": "none", "budget": int(budget)}
+        rec = {"kind": "peer", "name": _seeded(name, seed_mode), "temporal": "none", "budget": int(budget),
+               "seed_mode": seed_mode}
         rec.update(extra or {})
         images, seconds = [], []
         try:
             for f in frames:
                 scene.frame_set(f)
-                c.seed = int(seed + f)
+                c.seed = frame_seed(f)
                 r = render()
                 images.append(r["rgb"])
                 seconds.append(r["seconds"])
@@ -260,12 +270,12 @@ def run_peers(scene, vl, budget: int, frames, seed: int, ref0, target_seconds, c
             out.append(sequence("cycles_oidn", lambda: pc.render(budget, denoise=True),
                                 {"settings": dict(pe.OIDN_SETTINGS)}))
             if target_seconds is None:
-                out.append(({"kind": "peer", "name": "cycles_adaptive+oidn", "budget": int(budget),
-                             "status": "error", "error": "no successful run of ours to match the time of"},
-                            None))
+                out.append(({"kind": "peer", "name": _seeded("cycles_adaptive+oidn", seed_mode),
+                             "budget": int(budget), "status": "error",
+                             "error": "no successful run of ours to match the time of"}, None))
                 return out
             scene.frame_set(frames[0])
-            c.seed = int(seed + frames[0])
+            c.seed = frame_seed(frames[0])
             search = []
             best = pe.search_threshold(pc, max_spp, target_seconds, search, ref0)
             thr = best["threshold"]
@@ -277,14 +287,16 @@ def run_peers(scene, vl, budget: int, frames, seed: int, ref0, target_seconds, c
     except Exception as exc:
         traceback.print_exc()
         have = {d["name"] for d, _ in out}
-        out += [({"kind": "peer", "name": n, "budget": int(budget), "status": "error",
-                  "error": err_text(exc)}, None) for n in PEERS if n not in have]
+        out += [({"kind": "peer", "name": _seeded(n, seed_mode), "budget": int(budget), "status": "error",
+                  "error": err_text(exc)}, None) for n in PEERS if _seeded(n, seed_mode) not in have]
     return out
 
 
-def configurations(methods, temporals) -> list:
-    """(method, temporal) pairs to run: ``lp`` temporal only with method lp."""
-    return [(m, t) for m in methods for t in temporals if t != "lp" or m == "lp"]
+def configurations(methods, temporals, seed_modes=("animated",)) -> list:
+    """(method, temporal, seed mode) to run: ``lp`` temporal only with method
+    lp, ``reproject`` only with the animated seed (FramesJob refuses it fixed)."""
+    return [(m, t, sm) for sm in seed_modes for m in methods for t in temporals
+            if (t != "lp" or m == "lp") and (t != "reproject" or sm == "animated")]
 
 
 def run_scene(name: str, cfg: dict, keep_images: bool = False, publish=None) -> dict:
@@ -332,20 +344,23 @@ def run_scene(name: str, cfg: dict, keep_images: bool = False, publish=None) -> 
     publish = publish or (lambda d: None)
     tmp = tempfile.mkdtemp(prefix="cycles-adaptive-seq-")
     try:
+        seed_modes = cfg.get("seed_modes", ["animated"])
         for budget in cfg["budgets"]:
             ours = []
-            for m, t in configurations(cfg["methods"], cfg["temporal"]):
+            for m, t, sm in configurations(cfg["methods"], cfg["temporal"], seed_modes):
                 rec, imgs = run_ours(scene, vl, m, t, budget, frames, cfg["seed"], tmp,
-                                     cfg["run_max_seconds"])
+                                     cfg["run_max_seconds"], sm)
                 runs.append(_judge(rec, imgs, ref_rgb, images, keep_images))
                 publish(out)
                 if rec["status"] == "ok":
                     ours.extend(rec["seconds_per_frame"])
             if cfg["peers"]:
                 target = float(np.median(ours)) if ours else None
-                for rec, imgs in run_peers(scene, vl, budget, frames, cfg["seed"], ref_rgb[0], target, cfg):
-                    runs.append(_judge(rec, imgs, ref_rgb, images, keep_images))
-                    publish(out)
+                for sm in seed_modes:
+                    for rec, imgs in run_peers(scene, vl, budget, frames, cfg["seed"], ref_rgb[0], target, cfg,
+                                               sm):
+                        runs.append(_judge(rec, imgs, ref_rgb, images, keep_images))
+                        publish(out)
     finally:
         guard.restore()
         shutil.rmtree(tmp, ignore_errors=True)
@@ -464,6 +479,9 @@ def add_arguments(p) -> None:
                    help="stop instead of rendering a missing reference")
     p.add_argument("--no-peers", action="store_true", help="skip the plain Cycles / OIDN peers")
     p.add_argument("--seed", type=int, default=0, help="base Cycles seed of the runs (frame f: seed + f)")
+    p.add_argument("--seed-modes", default="animated",
+                   help="comma-separated: 'animated' (frame f renders with seed + f) and/or 'fixed' (every "
+                        "frame with seed), for our runs and the peers (default animated)")
     p.add_argument("--max-samples-factor", type=int, default=16,
                    help="Cycles adaptive peer's max samples = this x the budget (default 16)")
     p.add_argument("--run-max-seconds", type=float, default=0.0,
@@ -483,7 +501,13 @@ def resolve_config(args) -> dict:
     for t in temporal:
         if t not in TEMPORAL_MODES:
             raise SequenceError(f"unknown temporal mode {t!r}; choose from {', '.join(TEMPORAL_MODES)}")
-    if not configurations(methods, temporal):
+    seed_modes = list(dict.fromkeys(m.strip() for m in args.seed_modes.split(",") if m.strip()))
+    for sm in seed_modes:
+        if sm not in ("animated", "fixed"):
+            raise SequenceError(f"unknown seed mode {sm!r}; choose animated and/or fixed")
+    if not seed_modes:
+        raise SequenceError("--seed-modes: give animated and/or fixed")
+    if not configurations(methods, temporal, seed_modes):
         raise SequenceError("no method x temporal configuration to run")
     try:
         scenes = refs.scene_names(args.scenes)
@@ -503,7 +527,7 @@ def resolve_config(args) -> dict:
             "max_frames": int(args.max_frames), "resolution_percentage": int(args.resolution_percentage),
             "reference_spp": rs, "reference_dir": os.path.abspath(args.reference_dir),
             "render_references": not args.no_render_references, "peers": not args.no_peers,
-            "seed": int(args.seed), "max_samples_factor": int(args.max_samples_factor),
+            "seed": int(args.seed), "seed_modes": seed_modes, "max_samples_factor": int(args.max_samples_factor),
             "run_max_seconds": float(args.run_max_seconds), "out": os.path.abspath(args.out)}
 
 
@@ -523,6 +547,8 @@ def command_of(cfg: dict) -> str:
         parts.append("--no-peers")
     if cfg["seed"]:
         parts += ["--seed", str(cfg["seed"])]
+    if cfg.get("seed_modes", ["animated"]) != ["animated"]:
+        parts += ["--seed-modes", ",".join(cfg["seed_modes"])]
     if cfg["max_samples_factor"] != 16:
         parts += ["--max-samples-factor", str(cfg["max_samples_factor"])]
     if cfg["run_max_seconds"]:

@@ -48,6 +48,7 @@ from .method import Method, check_ranges, consistency_guard, param, params_from_
 TOP_UP = 3        # planning rounds the last iteration may add to spend what rounding left
 MAX_BEYOND_MAP = 0.1  # most samples an iteration's plan may add beyond the map (share of its samples)
 MAX_EXACT_TASKS = 64  # most renders a pixel-exact fallback plan may take
+MERGE_WORK_PIXELS = 1 << 18  # a task this large (512x512) merges off the UI's main thread
 
 
 @dataclass
@@ -140,12 +141,15 @@ class Work:
     :meth:`result`.
     """
 
-    def __init__(self, fn, label: str = "", main_thread: bool = False):
+    def __init__(self, fn, label: str = "", main_thread: bool = False, mutates: bool = False):
         self.fn = fn
         self.label = label
         #: the computation calls something that only runs on the main thread
         #: (Blender's own OIDN): a consumer must run it inline
         self.main_thread = bool(main_thread)
+        #: the computation changes the run's buffers (a merge): a consumer that
+        #: stops waiting for it (Esc) must let it end before reading them
+        self.mutates = bool(mutates)
         self._lock = threading.Lock()
         self._done = threading.Event()
         self._value = None
@@ -392,11 +396,14 @@ class AdaptiveRun:
                        f"iteration {self.iteration + 1}: {len(tasks)} region tasks, "
                        f"{int(covered.sum())} samples", 0, len(tasks))
         done = []
-        for i, task in enumerate(self._render_tasks(tasks)):
-            done.append(task)
+        for item in self._render_tasks(tasks):
+            if isinstance(item, Progress):  # a large task's merge, as a Work
+                yield item
+                continue
+            done.append(item)
             yield Progress("render", self.iteration, self._fraction(),
-                           f"iteration {self.iteration + 1}: task {i + 1}/{len(tasks)}",
-                           i + 1, len(tasks))
+                           f"iteration {self.iteration + 1}: task {len(done)}/{len(tasks)}",
+                           len(done), len(tasks))
         if len(done) < len(tasks):  # stopped by the time limit: keep what was rendered
             self.next_index = regions.assign_offsets(done, before)[1]
             covered = np.zeros_like(covered)
@@ -419,21 +426,26 @@ class AdaptiveRun:
         for s, task in enumerate(tasks):
             if s and self._time_up():  # one subset at least, so there is an image
                 break
-            color, feats = self._render_task(task)
+            color, feats = self._render(task)
             self._initial_seconds.append(self._last_render_seconds)
-            meter.add(color, task.samples)
-            for keep, (x0, y0, x1, y1) in zip(self._cv, crops):
-                keep.append((np.array(np.asarray(color)[y0:y1, x0:x1, :3], np.float64),
-                             {k: np.array(np.asarray(v)[y0:y1, x0:x1], np.float64)
-                              for k, v in feats.items() if k in self.method.PASSES},
-                             task.samples))
+
+            def measure(color=color, feats=feats, task=task):
+                meter.add(color, task.samples)
+                for keep, (x0, y0, x1, y1) in zip(self._cv, crops):
+                    keep.append((np.array(np.asarray(color)[y0:y1, x0:x1, :3], np.float64),
+                                 {k: np.array(np.asarray(v)[y0:y1, x0:x1], np.float64)
+                                  for k, v in feats.items() if k in self.method.PASSES},
+                                 task.samples))
+            yield from self._merge_steps(task, color, feats, measure)
             last = task
             yield Progress("initial", 0, self._fraction(),
                            f"initial pass: subset {s + 1}/{len(tasks)} ({task.samples} spp)",
                            s + 1, len(tasks))
         self.next_index[:] = last.offset + last.samples
         # the sequence's stratification, measured once on the equal subsets (core/variance.py)
-        self.buffers.exponent = meter.exponent(self.buffers)
+        work = Work(lambda: meter.exponent(self.buffers), "initial pass: measuring the noise's convergence")
+        yield Progress("initial", 0, self._fraction(), work.label, work=work)
+        self.buffers.exponent = work.result()
 
     def _drop_uninformative(self):
         """Feature passes the method reads that carry no information in this
@@ -443,7 +455,9 @@ class AdaptiveRun:
         also keep for its output (``Options.features``).  Albedo stays while
         normal is read (OIDN takes the normal only with an albedo)."""
         reads = [p for p in self.method.PASSES if p in self.buffers.features]
-        flat = set(self.buffers.constant_features(reads))
+        work = Work(lambda: self.buffers.constant_features(reads), "initial pass: finding constant passes")
+        yield Progress("initial", 0, self._fraction(), work.label, work=work)
+        flat = set(work.result())
         if "albedo" in flat and "normal" in reads and "normal" not in flat:
             flat.discard("albedo")
         self.dropped = tuple(p for p in reads if p in flat)
@@ -559,13 +573,29 @@ class AdaptiveRun:
         """Apply ``Options.max_pixel_share`` to a map (:func:`core.maps.cap_share`)."""
         return maps.cap_share(counts, self.options.max_pixel_share)
 
-    def _render_task(self, task):
-        """Render and merge one task; returns what the executor gave (color, features)."""
+    def _render(self, task):
+        """Render one task (the executor: Blender's main thread); (color, features)."""
         t0 = time.perf_counter()
         color, feats = self.executor.render(task)
         self._count_render(time.perf_counter() - t0)
-        self._merge(task, color, feats)
         return color, feats
+
+    def _merge_steps(self, task, color, feats, also=None):
+        """Merge one rendered task (then ``also()``); a task of at least
+        ``MERGE_WORK_PIXELS`` merges as a :class:`Work` marked ``mutates``
+        (seconds at 1920x1080: off the UI's main thread; a consumer that
+        stops waiting must let it finish before reading the buffers)."""
+        def merge():
+            self._merge(task, color, feats)
+            if also is not None:
+                also()
+        if (task.x1 - task.x0) * (task.y1 - task.y0) < MERGE_WORK_PIXELS:
+            merge()
+            return
+        work = Work(merge, f"merging {task.x1 - task.x0}x{task.y1 - task.y0} px, {task.samples} spp",
+                    mutates=True)
+        yield Progress("merge", self.iteration, self._fraction(), work.label, work=work)
+        work.result()
 
     def _count_render(self, seconds: float) -> None:
         self._last_render_seconds = seconds
@@ -588,7 +618,8 @@ class AdaptiveRun:
             for task in tasks:
                 if self._time_up():
                     return
-                self._render_task(task)
+                color, feats = self._render(task)
+                yield from self._merge_steps(task, color, feats)
                 yield task
             return
         results = iter(many(tasks))
@@ -601,7 +632,7 @@ class AdaptiveRun:
             t0 = time.perf_counter()
             color, feats = next(results)
             self._count_render(time.perf_counter() - t0)
-            self._merge(task, color, feats)
+            yield from self._merge_steps(task, color, feats)
             yield task
 
     def _adapt(self, budget: int):

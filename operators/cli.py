@@ -105,6 +105,10 @@ def build_parser(blender_command: bool = False, extra_commands=()) -> argparse.A
                    help="frame ranges: 'reproject' reuses the previous frame's samples where "
                         "reprojection is valid (Schalk 2018); 'lp' adds LP's temporal regression "
                         "over frames (Moon 2015 Sec. 6, with --method lp)")
+    r.add_argument("--seed-mode", choices=["animated", "fixed"], default="animated",
+                   help="frame ranges: 'animated' gives frame F the seed SEED + F (independent noise per "
+                        "frame, as Cycles' animated seed); 'fixed' renders every frame with SEED (the same "
+                        "noise pattern: less flicker where the image does not move)")
     r.add_argument("--scene", help="scene name (default: the active scene)")
     r.add_argument("--view-layer", help="render this one view layer")
     r.add_argument("--view-layers", metavar="all|A,B", help="render these view layers, one EXR layer each "
@@ -343,7 +347,7 @@ def _render_frames(args, scene, layers, opts, cluster=None) -> int:
     common = dict(reference_pattern=args.reference, temporal=args.temporal,
                   reproject_params=method_params(args, "reproject"),
                   temporal_params=method_params(args, "temporal"), preview=not args.no_preview,
-                  exr_depth=args.exr_depth)
+                  exr_depth=args.exr_depth, seed_mode=args.seed_mode)
     flags = dict(skip_existing=args.skip_existing, resume=args.resume, overwrite=args.overwrite)
     vl = layers[0]
     if cluster is not None:

@@ -1029,9 +1029,13 @@ def parse_frames(text: str, scene) -> list:
 class FramesJob:
     """Adaptive render of a frame range, one RenderJob per frame.
 
-    Each frame gets the seed ``options.seed + frame`` (like Cycles' animated
-    seed), so samples reused from the previous frame are independent of the new
-    frame's.  ``temporal``:
+    ``seed_mode``: ``"animated"`` (default) gives each frame the seed
+    ``options.seed + frame`` (Cycles' animated seed), so samples reused from
+    the previous frame are independent of the new frame's; ``"fixed"`` gives
+    every frame ``options.seed`` (Cycles' default without the animated seed):
+    the same noise pattern in every frame, which flickers less where the image
+    does not move (docs/notes/seeds.md); refused with ``reproject``, whose
+    reused samples would repeat the new frame's own.  ``temporal``:
     - ``"none"``: frames are independent;
     - ``"reproject"``: after each frame's initial pass, the previous frame's
       accumulated samples are forward-reprojected into it where valid (Schalk
@@ -1044,15 +1048,22 @@ class FramesJob:
     """
 
     MODES = ("none", "reproject", "lp")
+    SEED_MODES = ("animated", "fixed")
 
     def __init__(self, scene, view_layer, options: Options, out_pattern: str, frames: list,
                  reference_pattern: str | None = None, temporal: str = "none",
                  reproject_params: dict | None = None, temporal_params: dict | None = None,
-                 view_layers=None, **job_kw):
+                 view_layers=None, seed_mode: str = "animated", **job_kw):
         """``view_layers``: several view layers render each frame as a
         :class:`LayersJob` (default: ``[view_layer]``, a RenderJob)."""
         if temporal not in self.MODES:
             raise JobError(f"unknown temporal mode {temporal!r} (choose {', '.join(self.MODES)})")
+        if seed_mode not in self.SEED_MODES:
+            raise JobError(f"unknown seed mode {seed_mode!r} (choose {', '.join(self.SEED_MODES)})")
+        if seed_mode == "fixed" and temporal == "reproject":
+            raise JobError("--temporal reproject needs --seed-mode animated: with a fixed seed the "
+                           "reused samples repeat the new frame's own")
+        self.seed_mode = seed_mode
         self.view_layers = list(view_layers) if view_layers else [view_layer]
         if len(self.view_layers) > 1 and temporal != "none":
             raise JobError("--temporal works on one view layer: choose it with --view-layer")
@@ -1080,7 +1091,7 @@ class FramesJob:
     def steps(self):
         import dataclasses
         for i, f in enumerate(self.frames):
-            opts = dataclasses.replace(self.options, frame=f, seed=self.options.seed + f)
+            opts = dataclasses.replace(self.options, frame=f, seed=self.frame_seed(f))
             if self.temporal != "none":
                 opts.features = tuple(dict.fromkeys(tuple(opts.features) + REPROJECT_PASSES))
             ref = frame_path(self.reference_pattern, f) if self.reference_pattern else None
@@ -1106,6 +1117,10 @@ class FramesJob:
             self.summaries.append(summary)
             self._prev = (self.job.run.buffers, self.job.camera, self.job.run.method_state)
             yield summary
+
+    def frame_seed(self, frame: int) -> int:
+        """The Cycles seed of ``frame``'s renders (see ``seed_mode``)."""
+        return self.options.seed + (frame if self.seed_mode == "animated" else 0)
 
     def _write_frame(self, i: int, frame: int):
         """The finished frame's outputs through its job's ``write_steps``:

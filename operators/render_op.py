@@ -22,7 +22,7 @@ from .stepper import Stepper, start_writer
 STEP_SECONDS = 0.05  # work per timer tick before handing control back to the UI
 
 #: status-bar words of the loop's stages (``core.pipeline.Progress.stage``)
-STAGE_WORDS = {"initial": "Rendering", "adapt": "Adapting", "plan": "Planning", "render": "Rendering",
+STAGE_WORDS = {"initial": "Rendering", "adapt": "Adapting", "plan": "Planning", "render": "Rendering", "merge": "Merging",
                "saving": "Saving checkpoint", "checkpoint": "Iteration done", "done": "Sampling done", "reconstruct": "Reconstructing",
                "write": "Writing"}
 
@@ -229,7 +229,8 @@ class CYCLESADAPTIVE_OT_render(bpy.types.Operator):
                              temporal=s.temporal, overwrite=s.overwrite,
                              reproject_params=method_params(s, "reproject"),
                              temporal_params=method_params(s, "temporal"),
-                             view_layers=layers, compositor=s.use_compositor, exr_depth=s.exr_depth)
+                             view_layers=layers, compositor=s.use_compositor, exr_depth=s.exr_depth,
+                             seed_mode=s.seed_mode)
         out = path or ensure_output_folder(default_out(scene, opts.method, scene.frame_current))
         kw = dict(overwrite=s.overwrite, compositor=s.use_compositor, exr_depth=s.exr_depth)
         if len(layers) > 1:

@@ -32,6 +32,7 @@ import threading
 import time
 import weakref
 
+from ..core.pipeline import Work
 
 _running: "weakref.WeakSet[threading.Thread]" = weakref.WeakSet()
 
@@ -159,6 +160,9 @@ class Stepper:
         are already being written (the loop had ended) it changes nothing."""
         if self.finished or self.writer is not None:
             return self.summary
+        # a Work that changes the buffers (a merge) must end before the partial
+        # result reads them: the write waits for it, on the writer thread
+        settle = self.pending if getattr(self.pending, "mutates", False) else None
         self.gen.close()
         self.pending = None
         self.cancelled = True
@@ -166,7 +170,7 @@ class Stepper:
         if run is None or getattr(run, "buffers", None) is None:
             self.finished = True
             return None
-        self.writer = self._write_steps(partial=True, reconstruct=False)
+        self.writer = self._write_steps(partial=True, reconstruct=False, settle=settle)
         self._advance_writer()
         return self.summary
 
@@ -204,11 +208,15 @@ class Stepper:
             self._launch(work, self.start_write)
             return False
 
-    def _write_steps(self, partial: bool, reconstruct: bool):
+    def _write_steps(self, partial: bool, reconstruct: bool, settle=None):
         """The job's outputs as steps: a RenderJob's ``write_steps``; a frame
         range writes the frame in progress through its RenderJob's, then its
         own ``finish`` (which finds that frame written); any other job's
-        ``finish`` inline."""
+        ``finish`` inline.  ``settle``: a Work changing the buffers, still
+        running after Esc; waited for first (``Work.run`` waits for the
+        thread running it)."""
+        if settle is not None:
+            yield Work(settle.run, "finishing the merge in progress")
         summary = yield from self._job_write_steps(partial, reconstruct)
         work = self.after_write(self.job) if self.after_write is not None else None
         if work is not None:

@@ -126,9 +126,11 @@ def test_reference_floor_matches_simulation():
     assert te == pytest.approx(floor, rel=0.05)
 
 
-def test_configurations_lp_only_with_lp():
+def test_configurations_lp_only_with_lp_and_reproject_only_animated():
     got = seq.configurations(["uniform", "lp"], ["none", "reproject", "lp"])
-    assert ("uniform", "lp") not in got and ("lp", "lp") in got and len(got) == 5
+    assert ("uniform", "lp", "animated") not in got and ("lp", "lp", "animated") in got and len(got) == 5
+    both = seq.configurations(["uniform", "lp"], ["none", "reproject", "lp"], ["animated", "fixed"])
+    assert len(both) == 5 + 3 and ("lp", "reproject", "fixed") not in both and ("lp", "lp", "fixed") in both
 
 
 def test_parse_frame_range():
@@ -147,14 +149,17 @@ def test_tiny_end_to_end(tmp_path):
     args = p.parse_args(["--scenes", "animated", "--methods", "uniform", "--temporal", "none",
                          "--budgets", "2", "--frames", "1-3", "--resolution-percentage", "25",
                          "--reference-spp", "2", "--reference-dir", str(tmp_path / "refs"),
-                         "--out", str(tmp_path / "out"), "--max-samples-factor", "2"])
+                         "--out", str(tmp_path / "out"), "--max-samples-factor", "2",
+                         "--seed-modes", "animated,fixed"])
     cfg = seq.resolve_config(args)
+    assert "--seed-modes animated,fixed" in seq.command_of(cfg)
     res = seq.run(cfg, seq.command_of(cfg), keep_images=True)
     d = res["scenes"]["animated"]
     assert d["status"] == "ok" and d["frames"] == [1, 2, 3]
     assert (d["width"], d["height"]) == (32, 24)
     runs = {r["name"]: r for r in d["runs"]}
-    assert set(runs) == {"uniform", "cycles_uniform", "cycles_oidn", "cycles_adaptive+oidn"}
+    names = {"uniform", "cycles_uniform", "cycles_oidn", "cycles_adaptive+oidn"}
+    assert set(runs) == names | {f"{n} (fixed seed)" for n in names}
     for r in runs.values():
         assert r["status"] == "ok", r
         assert len(r["relmse_per_frame"]) == 3

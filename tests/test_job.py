@@ -144,8 +144,10 @@ def test_esc_during_adaptation_returns_without_waiting_and_writes_the_sample_mea
     method, threads = GatedLP(), Threads()
     job = _gated_job(tmp_path, scene, method)
     st = Stepper(job, slice_seconds=60.0, start=threads)  # only a Work ends a slice early
-    assert st.step() is False and st.stage == "saving"  # the initial pass's checkpoint, off the main thread
-    while st.stage == "saving":
+    assert st.step() is False
+    for _ in range(20):  # the initial pass's measurements and checkpoint run as Works too
+        if st.stage == "adapt":
+            break
         threads.join()
         assert st.step() is False
     assert st.stage == "adapt" and st.pending is not None
@@ -268,3 +270,30 @@ def test_half_results_halve_the_result_passes_and_keep_the_statistics_exact(tmp_
         expect = imageio.as_half(full[name]) if name in job_mod.RESULT_PASSES else full[name]
         assert np.array_equal(half[name], expect), name
     assert os.path.getsize(tmp_path / "half.exr") < os.path.getsize(tmp_path / "full.exr")
+
+
+@pytest.mark.parametrize("mode", ["animated", "fixed"])
+def test_a_fixed_seed_repeats_the_noise_of_a_still_shot_and_the_animated_one_does_not(tmp_path, mode):
+    """Frames of a shot where nothing moves: with the fixed seed every frame is
+    the same render (the same noise pattern: no flicker), with the animated
+    seed each frame has its own noise."""
+    from cycles_adaptive.operators.job import FramesJob
+    scene = build_scene(24, 16)
+    opts = Options(method="uniform", spp=2, initial_spp=2, subsets=2, seed=5)
+    fj = FramesJob(scene, bpy.context.view_layer, opts, str(tmp_path / "f_####.exr"), [1, 2, 3],
+                   seed_mode=mode, preview=False)
+    images = []
+    for item in fj.steps():
+        if isinstance(item, dict):
+            images.append(np.array(fj.job.result.image))
+    assert [fj.frame_seed(f) for f in (1, 2, 3)] == ([6, 7, 8] if mode == "animated" else [5, 5, 5])
+    same = [np.array_equal(images[0], x) for x in images[1:]]
+    assert same == ([True, True] if mode == "fixed" else [False, False])
+
+
+def test_a_fixed_seed_with_reprojection_is_refused(tmp_path):
+    from cycles_adaptive.operators.job import FramesJob, JobError
+    scene = build_scene(8, 8)
+    with pytest.raises(JobError, match="needs --seed-mode animated"):
+        FramesJob(scene, bpy.context.view_layer, Options(method="var", spp=2), str(tmp_path / "f_####.exr"),
+                  [1, 2], temporal="reproject", seed_mode="fixed")

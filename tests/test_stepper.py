@@ -291,9 +291,13 @@ def test_esc_before_the_exr_is_written_then_complete_files_match_an_inline_write
     opts = Options(method="var", spp=8, initial_spp=2, subsets=2, frame=scene.frame_current, task_cost=64)
     job = job_mod.RenderJob(scene, bpy.context.view_layer, opts, out)
     threads, start = _writer_threads()
-    st = Stepper(job, slice_seconds=0.0, start=Threads(), start_write=start)
-    for _ in range(4):
+    loop_threads = Threads()
+    st = Stepper(job, slice_seconds=0.0, start=loop_threads, start_write=start)
+    for _ in range(40):  # past the initial pass and its checkpoint (Works on threads)
         assert st.step() is False
+        loop_threads.join()
+        if st.stage == "checkpoint" or st.stage == "adapt":
+            break
     assert st.cancel() is None and st.writing
     assert not os.path.exists(out) and not os.path.exists(png)  # Esc came back before the write
     assert st.step() is False and job.view_layer is not bpy.context.view_layer  # name only, off-thread
@@ -443,3 +447,57 @@ def test_the_image_editor_pixels_are_prepared_without_blender_and_shown_as_given
     np.testing.assert_allclose(px.reshape(6, 5, 4)[::-1][..., :3], image, atol=1e-6)  # rows bottom to top
     bpy.data.images[display.SAMPLES].pixels.foreach_get(px)
     np.testing.assert_allclose(px.reshape(6, 5, 4)[::-1][..., 0], samples / samples.max(), atol=1e-6)
+
+
+def test_esc_during_a_merge_writes_the_partial_result_after_the_merge_ends(tmp_path, monkeypatch):
+    """A large task's merge runs as a Work that changes the buffers: Esc
+    returns at once, and the partial result is computed only once that merge
+    has ended (never from half-merged buffers): its samples are those of
+    every merged subset."""
+    bpy = pytest.importorskip("bpy")
+    import numpy as np
+    from blend_util import build_scene
+
+    from cycles_adaptive.core import io as imageio
+    from cycles_adaptive.core import pipeline
+    from cycles_adaptive.core.pipeline import Options
+    from cycles_adaptive.operators import job as job_mod
+
+    monkeypatch.setattr(pipeline, "MERGE_WORK_PIXELS", 1)  # every merge is a Work
+    gate, events = threading.Event(), []
+    real_merge = pipeline.merge_render
+
+    def gated_merge(buf, task, color, feats):
+        if task.offset > 0:  # the second subset's merge waits for the test
+            gate.wait(60)
+        real_merge(buf, task, color, feats)
+        events.append(("merged", task.offset))
+    monkeypatch.setattr(pipeline, "merge_render", gated_merge)
+    real_output = job_mod.RenderJob.output
+
+    def output(self, *a, **kw):
+        events.append(("output", None))
+        return real_output(self, *a, **kw)
+    monkeypatch.setattr(job_mod.RenderJob, "output", output)
+
+    scene = build_scene(24, 16)
+    opts = Options(method="var", spp=8, initial_spp=2, subsets=2, frame=scene.frame_current, task_cost=64)
+    job = job_mod.RenderJob(scene, bpy.context.view_layer, opts, str(tmp_path / "m.exr"), preview=False)
+    loop_threads = Threads()
+    threads, start = _writer_threads()
+    st = Stepper(job, slice_seconds=0.0, start=loop_threads, start_write=start)
+    for _ in range(3000):
+        assert st.step() is False
+        if st.stage == "merge" and st.pending is not None and not st.pending.done and events:
+            break  # the second subset's merge is running (the first is done)
+        time.sleep(0.01)
+    assert st.stage == "merge" and events == [("merged", 0)]
+    assert st.cancel() is None and st.writing  # Esc: back at once, the write waits
+    assert events == [("merged", 0)]
+    gate.set()
+    while not st.step():
+        for t in threads + loop_threads.threads:
+            t.join(60)
+    assert events == [("merged", 0), ("merged", 1), ("output", None)]
+    passes, _ = imageio.read_layers(job.out)
+    assert st.summary["partial"] and np.all(passes["Samples"] == 2)  # both 1-spp subsets
