@@ -96,6 +96,7 @@ class CYCLESADAPTIVE_PT_panel(_RenderPanel, bpy.types.Panel):
         col.prop(s, "max_seconds")
         col.prop(s, "output_path")
         col.prop(s, "exr_depth")
+        col.prop(s, "exr_contents")
         col.prop(s, "frame_range")
         if s.frame_range:
             col.prop(s, "temporal")

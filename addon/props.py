@@ -144,6 +144,13 @@ class CYCLESADAPTIVE_PG_settings(bpy.types.PropertyGroup):
                                     "reads stay full float)"),
                                    ("full", "Float (Full)", "Every pass in 32-bit float")],
                             description="How the output EXR stores the result passes")
+    exr_contents: EnumProperty(name="EXR Contents", default="full",
+                               items=[("full", "All Passes", "Every pass a later denoise needs to re-run "
+                                       "any method on this render"),
+                                      ("image", "Image Only", "The result, composite, error, samples per "
+                                       "pixel and feature passes: about a third of the file; no later "
+                                       "denoise")],
+                               description="Which passes the output EXR keeps")
     use_scene_samples: BoolProperty(name="Use Scene Samples", default=False,
                                     description="Take the budget (mean samples per pixel) from Cycles' "
                                                 "Render Max Samples instead of Samples per Pixel below")

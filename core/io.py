@@ -135,6 +135,9 @@ LOSSLESS_CODECS = ("zip", "zips", "piz", "rle", "none")
 #: how an output EXR may store its result passes: as the scene's output
 #: settings say, or half or full float for every render
 EXR_DEPTHS = ("scene", "half", "full")
+#: which passes an output EXR keeps: every statistic a re-run needs, or the image
+#: passes only (result, error, samples per pixel, feature means)
+EXR_CONTENTS = ("full", "image")
 #: the largest finite half float
 HALF_MAX = 65504.0
 

@@ -86,6 +86,10 @@ def buffers_from_passes(passes: dict, path: str) -> Buffers:
     variance is known).  StorageError names the missing or mis-sized pass."""
     if "Noisy" in passes and "Samples" in passes:
         return _from_output(passes, path)
+    if "Samples" in passes and "Error" in passes:  # ours, written with the image passes only
+        raise StorageError(f"{path}: an image-only output (--exr-contents image) holds the result, not "
+                           "the samples' statistics a re-run needs; denoise a render written with "
+                           "--exr-contents full")
     if "Combined" not in passes:
         raise StorageError(f"{path}: no Combined or Noisy layer "
                            f"(passes: {', '.join(sorted(passes)) or 'none'})")

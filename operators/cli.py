@@ -16,7 +16,7 @@ import time
 from dataclasses import MISSING
 
 from ..core import methods
-from ..core.io import EXR_DEPTHS
+from ..core.io import EXR_CONTENTS, EXR_DEPTHS
 from ..core.method import fields_by_name
 from ..core.pipeline import Options, option_fields
 
@@ -120,6 +120,10 @@ def build_parser(blender_command: bool = False, extra_commands=()) -> argparse.A
                    help="the result passes (result, composite, error, variance) in half or full float; "
                         "'scene': the scene's Color Depth when its output is OpenEXR, else half. The "
                         "statistics that denoise and resume read are always full float")
+    r.add_argument("--exr-contents", choices=EXR_CONTENTS, default="full",
+                   help="'full': every pass denoise needs to re-run any method; 'image': only the result, "
+                        "composite, error, samples per pixel and feature means (about a third of the size; "
+                        "denoise cannot re-run on it)")
     r.add_argument("--overwrite", action="store_true", help="replace existing output files")
     r.add_argument("--resume", action="store_true", help="continue from OUT.exr.checkpoint.npz")
     r.add_argument("--no-preview", action="store_true", help="do not write the PNG preview")
@@ -140,6 +144,9 @@ def build_parser(blender_command: bool = False, extra_commands=()) -> argparse.A
     d.add_argument("--exr-depth", choices=[d for d in EXR_DEPTHS if d != "scene"], default="half",
                    help="the result passes (result, error, variance) in half or full float; the "
                         "statistics a later denoise reads are always full float")
+    d.add_argument("--exr-contents", choices=EXR_CONTENTS, default="full",
+                   help="'full': every pass a later denoise needs; 'image': only the result, error, samples "
+                        "per pixel and feature means")
     d.add_argument("--overwrite", action="store_true", help="replace existing output files")
     d.add_argument("--no-preview", action="store_true",
                    help="do not write the PNG preview (default: OUT.png, in the colour management of "
@@ -267,7 +274,7 @@ def _render_frame(args, scene, layers, opts, cluster) -> int:
     out = args.out or ensure_output_folder(default_out(scene, args.method, opts.frame))
     kw = dict(reference=args.reference, overwrite=args.overwrite, resume=args.resume,
               preview=not args.no_preview, executor_factory=farm.executor_for(cluster, out),
-              compositor=not args.no_compositor, exr_depth=args.exr_depth)
+              compositor=not args.no_compositor, exr_depth=args.exr_depth, exr_contents=args.exr_contents)
     job = (RenderJob(scene, layers[0], opts, out, **kw) if len(layers) == 1 else
            LayersJob(scene, layers, opts, out, **kw))
     last = 0.0
@@ -347,7 +354,7 @@ def _render_frames(args, scene, layers, opts, cluster=None) -> int:
     common = dict(reference_pattern=args.reference, temporal=args.temporal,
                   reproject_params=method_params(args, "reproject"),
                   temporal_params=method_params(args, "temporal"), preview=not args.no_preview,
-                  exr_depth=args.exr_depth, seed_mode=args.seed_mode)
+                  exr_depth=args.exr_depth, exr_contents=args.exr_contents, seed_mode=args.seed_mode)
     flags = dict(skip_existing=args.skip_existing, resume=args.resume, overwrite=args.overwrite)
     vl = layers[0]
     if cluster is not None:
@@ -412,7 +419,8 @@ def cmd_denoise(args) -> int:
     if preview:
         imageio.check_writable(preview, args.overwrite)
     output = denoise_output(args.passes, args.method, method_params(args, args.method), args.guard_z,
-                            reference=args.reference, exr_depth=args.exr_depth)
+                            reference=args.reference, exr_depth=args.exr_depth,
+                            exr_contents=args.exr_contents)
     for line in output.summary.get("warnings", ()):
         print(f"warning: {line}", file=sys.stderr, flush=True)
     write_output(output, out)

@@ -867,7 +867,8 @@ def render_chain(spec: dict, job: dict, runs: list) -> dict:
                          reference_pattern=job["reference_pattern"], temporal=job["temporal"],
                          reproject_params=job["reproject_params"], temporal_params=job["temporal_params"],
                          overwrite=job["overwrite"], resume=resume, preview=job["preview"],
-                         exr_depth=job.get("exr_depth", "scene"), seed_mode=job.get("seed_mode", "animated"))
+                         exr_depth=job.get("exr_depth", "scene"), exr_contents=job.get("exr_contents", "full"),
+                         seed_mode=job.get("seed_mode", "animated"))
     for step in farm_job.drive([[farm_job.Run(tuple(r[0]), bool(r[1])) for r in runs]], make, codes, errors):
         if isinstance(step, dict):
             summaries.append(json.loads(json.dumps(step, default=float)))
@@ -886,7 +887,7 @@ class FarmFramesJob:
                  reference_pattern: str | None = None, temporal: str = "none", reproject_params=None,
                  temporal_params=None, skip_existing: bool = False, overwrite: bool = False,
                  resume: bool = False, preview: bool = True, chain_length: int | None = None,
-                 exr_depth: str = "scene", seed_mode: str = "animated"):
+                 exr_depth: str = "scene", exr_contents: str = "full", seed_mode: str = "animated"):
         from .job import frame_path
         self.farm, self.scene, self.view_layer = farm, scene, view_layer
         self.options, self.frames, self.temporal = options, list(frames), temporal
@@ -902,7 +903,8 @@ class FarmFramesJob:
                     "reference_pattern": os.path.abspath(reference_pattern) if reference_pattern else None,
                     "temporal": temporal, "reproject_params": dict(reproject_params or {}),
                     "temporal_params": dict(temporal_params or {}), "overwrite": bool(overwrite),
-                    "preview": bool(preview), "exr_depth": exr_depth, "seed_mode": seed_mode}
+                    "preview": bool(preview), "exr_depth": exr_depth, "exr_contents": exr_contents,
+                    "seed_mode": seed_mode}
         self.codes = {p.frame: farm_job.SKIPPED for p in self.plans if p.action == "skip"}
         self.errors: dict = {}
         self.summaries: list = []

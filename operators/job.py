@@ -276,6 +276,12 @@ class Output:
 RESULT_PASSES = frozenset({"Combined", "Error", "Variance"})
 
 EXR_DEPTHS = imageio.EXR_DEPTHS
+EXR_CONTENTS = imageio.EXR_CONTENTS
+
+#: the passes an ``"image"`` EXR keeps: what compositing reads (the result, its
+#: estimated error, samples per pixel and the feature means), not the statistics
+#: that ``denoise`` re-runs from
+IMAGE_PASSES = frozenset({"Combined", "Error", "Samples"})
 
 
 @dataclasses.dataclass(frozen=True)
@@ -289,13 +295,21 @@ class ExrFormat:
     half: bool = True
     codec: str = "zip"
     note: str = ""  # why the scene's own setting was not taken, if it was not
+    contents: str = "full"  # "full": every pass; "image": IMAGE_PASSES and the feature means
 
     @property
     def label(self) -> str:
-        return f"{'half' if self.half else 'full'} float results, {self.codec.upper()}"
+        text = f"{'half' if self.half else 'full'} float results, {self.codec.upper()}"
+        return text + (", image passes only" if self.contents == "image" else "")
+
+    def keeps(self, name: str) -> bool:
+        """Whether pass ``name`` goes into the file."""
+        if self.contents == "full":
+            return True
+        return name in IMAGE_PASSES or (name.startswith("Feat_") and not name.endswith("_M2"))
 
 
-def exr_format(scene=None, depth: str = "scene") -> ExrFormat:
+def exr_format(scene=None, depth: str = "scene", contents: str = "full") -> ExrFormat:
     """The :class:`ExrFormat` for ``depth`` (``EXR_DEPTHS``).  ``"scene"``: a
     scene whose output is OpenEXR gives its Color Depth and Codec (a lossy
     codec - PXR24, B44, DWA - becomes ZIP: the statistics must stay exact);
@@ -305,17 +319,19 @@ def exr_format(scene=None, depth: str = "scene") -> ExrFormat:
     (reads the scene)."""
     if depth not in EXR_DEPTHS:
         raise JobError(f"EXR depth {depth!r} is not one of {', '.join(EXR_DEPTHS)}")
+    if contents not in EXR_CONTENTS:
+        raise JobError(f"EXR contents {contents!r} is not one of {', '.join(EXR_CONTENTS)}")
     if depth != "scene":
-        return ExrFormat(half=depth == "half")
+        return ExrFormat(half=depth == "half", contents=contents)
     settings = getattr(getattr(scene, "render", None), "image_settings", None)
     if settings is None or "OPEN_EXR" not in str(getattr(settings, "file_format", "")):
-        return ExrFormat()
+        return ExrFormat(contents=contents)
     half = str(getattr(settings, "color_depth", "32")) == "16"
     codec = str(getattr(settings, "exr_codec", "ZIP")).lower()
     if codec in imageio.LOSSLESS_CODECS:
-        return ExrFormat(half, codec)
+        return ExrFormat(half, codec, contents=contents)
     return ExrFormat(half, "zip", f"the scene's EXR codec {codec.upper()} is lossy; ZIP keeps the "
-                                   "statistics exact")
+                                   "statistics exact", contents)
 
 
 def write_output(output: Output, path: str) -> None:
@@ -324,7 +340,9 @@ def write_output(output: Output, path: str) -> None:
     ``Composite``), stored as ``output.exr`` says; the caller checked that
     it may."""
     fmt = output.exr or ExrFormat()
-    imageio.write_multilayer(path, [(output.layer, output.passes)] + list(output.extra_layers),
+    layers = [(output.layer, output.passes)] + list(output.extra_layers)
+    layers = [(name, {k: v for k, v in passes.items() if fmt.keeps(k)}) for name, passes in layers]
+    imageio.write_multilayer(path, layers,
                              attributes=output.attributes,
                              half=RESULT_PASSES if fmt.half else False, codec=fmt.codec)
 
@@ -402,7 +420,7 @@ class RenderJob:
                  overwrite: bool = False, resume: bool = False, preview: bool = True,
                  keep_checkpoint: bool = False, method=None, prior=None, reconstructor=None,
                  executor_factory=None, keep_denoise_passes: bool = True, compositor: bool = True,
-                 checkpoint: str | None = None, exr_depth: str = "scene"):
+                 checkpoint: str | None = None, exr_depth: str = "scene", exr_contents: str = "full"):
         """``out``: the output EXR, or None to write nothing (no checkpoint,
         no outputs: the API); ``method``: a :class:`core.method.Method` object
         (default: the registered ``options.method``); ``prior``: the run's
@@ -416,11 +434,12 @@ class RenderJob:
         run on is said in the summary's ``compositor`` and the EXR stays raw;
         ``checkpoint``: the checkpoint of a job without ``out`` (one view
         layer of a :class:`LayersJob`, which writes the outputs itself);
-        ``exr_depth``: how the EXR stores its result passes (:func:`exr_format`)."""
+        ``exr_depth``, ``exr_contents``: how the EXR stores its result
+        passes and which passes it keeps (:func:`exr_format`)."""
         from ..addon import executor as ex
         self.ex = ex
         ex.check_scene(scene, view_layer)
-        self.exr = exr_format(scene, exr_depth)
+        self.exr = exr_format(scene, exr_depth, exr_contents)
         self.scene, self.view_layer = scene, view_layer
         self.layer_name = view_layer.name  # output() may run off the main thread: no RNA access there
         self.composite_plan, self.compositor_note = (composite_plan(scene, [view_layer.name])
@@ -908,7 +927,7 @@ class LayersJob:
 
 
 def denoise_output(path: str, method: str, params: dict | None = None, guard_z: float | None = None,
-                   reference: str | None = None, exr_depth: str = "half") -> Output:
+                   reference: str | None = None, exr_depth: str = "half", exr_contents: str = "full") -> Output:
     """Re-run ``method`` on the passes stored in ``path`` (an output EXR of a
     render, or a Blender multilayer render with Combined and Denoising
     passes), through the consistency guard (``guard_z``, default the loop's):
@@ -944,7 +963,7 @@ def denoise_output(path: str, method: str, params: dict | None = None, guard_z: 
                "preview_view_transform": None,
                "no_variance_fraction": float(1.0 - buf.has_variance.mean()), "warnings": warnings}
     _info_fields(summary, result.info)
-    fmt = exr_format(None, "half" if exr_depth == "scene" else exr_depth)
+    fmt = exr_format(None, "half" if exr_depth == "scene" else exr_depth, exr_contents)
     summary["exr"] = fmt.label
     if ref is not None:
         summary.update(metrics.summary(image, error, ref))

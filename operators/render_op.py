@@ -230,9 +230,10 @@ class CYCLESADAPTIVE_OT_render(bpy.types.Operator):
                              reproject_params=method_params(s, "reproject"),
                              temporal_params=method_params(s, "temporal"),
                              view_layers=layers, compositor=s.use_compositor, exr_depth=s.exr_depth,
-                             seed_mode=s.seed_mode)
+                             exr_contents=s.exr_contents, seed_mode=s.seed_mode)
         out = path or ensure_output_folder(default_out(scene, opts.method, scene.frame_current))
-        kw = dict(overwrite=s.overwrite, compositor=s.use_compositor, exr_depth=s.exr_depth)
+        kw = dict(overwrite=s.overwrite, compositor=s.use_compositor, exr_depth=s.exr_depth,
+                  exr_contents=s.exr_contents)
         if len(layers) > 1:
             return LayersJob(scene, layers, opts, out, **kw)
         return RenderJob(scene, layers[0], opts, out, **kw)

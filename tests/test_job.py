@@ -1,5 +1,6 @@
 """RenderJob in-process: a cancel restores the scene and writes the partial result."""
 import os
+import time
 
 import pytest
 
@@ -28,8 +29,11 @@ def test_cancel_mid_run_restores_the_scene_and_writes_the_partial_result(tmp_pat
     job = RenderJob(scene, bpy.context.view_layer, Options(method=method, spp=12, initial_spp=2, subsets=2,
                                                            frame=scene.frame_current, task_cost=64), out)
     st = Stepper(job, slice_seconds=0.0)
-    for _ in range(6):  # initial pass and part of the first iteration
+    for _ in range(3000):  # the initial pass, its checkpoint and the start of the first iteration
         assert not st.step()
+        if st.stage in ("adapt", "plan", "render"):
+            break
+        time.sleep(0.005)  # the initial pass's Works run on threads
     summary = st.cancel()
     assert _settings(scene) == before
     assert summary["partial"] and os.path.isfile(out) and os.path.isfile(out + ".checkpoint.npz")
@@ -297,3 +301,27 @@ def test_a_fixed_seed_with_reprojection_is_refused(tmp_path):
     with pytest.raises(JobError, match="needs --seed-mode animated"):
         FramesJob(scene, bpy.context.view_layer, Options(method="var", spp=2), str(tmp_path / "f_####.exr"),
                   [1, 2], temporal="reproject", seed_mode="fixed")
+
+
+def test_an_image_only_exr_keeps_the_image_passes_and_denoise_refuses_it(tmp_path):
+    """``exr_contents="image"``: the result, error, samples per pixel and the
+    feature means, bit for bit as in the full file, and nothing else; a
+    smaller file; ``denoise`` on it says why it cannot re-run."""
+    scene = build_scene(32, 24)
+    files = {}
+    for contents in ("full", "image"):
+        opts = Options(method="var", spp=4, initial_spp=2, subsets=2, iterations=1, seed=2)
+        job = RenderJob(scene, bpy.context.view_layer, opts, str(tmp_path / f"{contents}.exr"),
+                        exr_contents=contents, preview=False)
+        for _ in job.steps():
+            pass
+        job.finish()
+        files[contents] = imageio.read_layers(job.out)[0]
+    full, image = files["full"], files["image"]
+    feats = {k for k in full if k.startswith("Feat_") and not k.endswith("_M2")}
+    assert set(image) == {"Combined", "Error", "Samples"} | feats and "Noisy" in full
+    assert all(np.array_equal(image[k], full[k]) for k in image)
+    assert os.path.getsize(tmp_path / "image.exr") < 0.7 * os.path.getsize(tmp_path / "full.exr")
+    from cycles_adaptive.core.storage import StorageError
+    with pytest.raises(StorageError, match="image-only output"):
+        job_mod.denoise_output(str(tmp_path / "image.exr"), "lp")
