@@ -21,8 +21,27 @@ def load_package(name: str = "cycles_adaptive"):
     return mod
 
 
+def leave(code: int) -> None:
+    """Exit with ``code`` once the command is done.  With the bpy module
+    loaded, after the exit hooks Python would run (the stepper's wait for
+    running writes), the process leaves without
+    running bpy's C++ static destructors: bpy 4.x can hang in them forever
+    (its sound-device thread's condition variable; seen with gdb on a process
+    whose work was done), which would stall a farm job after its frame was
+    written."""
+    sys.stdout.flush()
+    sys.stderr.flush()
+    if "bpy" not in sys.modules:
+        sys.exit(code)
+    import atexit
+    atexit._run_exitfuncs()  # the exit hooks a normal exit runs (the stepper waits for its writes there)
+    sys.stdout.flush()
+    sys.stderr.flush()
+    os._exit(code)
+
+
 if __name__ == "__main__":
     load_package()
     from cycles_adaptive.bench import COMMANDS
     from cycles_adaptive.operators import cli, farm, farm_job
-    sys.exit(cli.main(sys.argv[1:], extra_commands=tuple(COMMANDS) + (farm_job, farm.WORKER)))
+    leave(cli.main(sys.argv[1:], extra_commands=tuple(COMMANDS) + (farm_job, farm.WORKER)))
