@@ -105,10 +105,10 @@ def build_parser(blender_command: bool = False, extra_commands=()) -> argparse.A
                    help="frame ranges: 'reproject' reuses the previous frame's samples where "
                         "reprojection is valid (Schalk 2018); 'lp' adds LP's temporal regression "
                         "over frames (Moon 2015 Sec. 6, with --method lp)")
-    r.add_argument("--seed-mode", choices=["animated", "fixed"], default="animated",
+    r.add_argument("--seed-mode", choices=["auto", "animated", "fixed"], default="auto",
                    help="frame ranges: 'animated' gives frame F the seed SEED + F (independent noise per "
                         "frame, as Cycles' animated seed); 'fixed' renders every frame with SEED (the same "
-                        "noise pattern: less flicker where the image does not move)")
+                        "noise pattern: less flicker); 'auto': fixed, animated with --temporal reproject")
     r.add_argument("--scene", help="scene name (default: the active scene)")
     r.add_argument("--view-layer", help="render this one view layer")
     r.add_argument("--view-layers", metavar="all|A,B", help="render these view layers, one EXR layer each "

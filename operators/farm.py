@@ -868,7 +868,7 @@ def render_chain(spec: dict, job: dict, runs: list) -> dict:
                          reproject_params=job["reproject_params"], temporal_params=job["temporal_params"],
                          overwrite=job["overwrite"], resume=resume, preview=job["preview"],
                          exr_depth=job.get("exr_depth", "scene"), exr_contents=job.get("exr_contents", "full"),
-                         seed_mode=job.get("seed_mode", "animated"))
+                         seed_mode=job.get("seed_mode", "auto"))
     for step in farm_job.drive([[farm_job.Run(tuple(r[0]), bool(r[1])) for r in runs]], make, codes, errors):
         if isinstance(step, dict):
             summaries.append(json.loads(json.dumps(step, default=float)))
@@ -887,7 +887,7 @@ class FarmFramesJob:
                  reference_pattern: str | None = None, temporal: str = "none", reproject_params=None,
                  temporal_params=None, skip_existing: bool = False, overwrite: bool = False,
                  resume: bool = False, preview: bool = True, chain_length: int | None = None,
-                 exr_depth: str = "scene", exr_contents: str = "full", seed_mode: str = "animated"):
+                 exr_depth: str = "scene", exr_contents: str = "full", seed_mode: str = "auto"):
         from .job import frame_path
         self.farm, self.scene, self.view_layer = farm, scene, view_layer
         self.options, self.frames, self.temporal = options, list(frames), temporal

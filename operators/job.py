@@ -1048,13 +1048,15 @@ def parse_frames(text: str, scene) -> list:
 class FramesJob:
     """Adaptive render of a frame range, one RenderJob per frame.
 
-    ``seed_mode``: ``"animated"`` (default) gives each frame the seed
-    ``options.seed + frame`` (Cycles' animated seed), so samples reused from
-    the previous frame are independent of the new frame's; ``"fixed"`` gives
-    every frame ``options.seed`` (Cycles' default without the animated seed):
-    the same noise pattern in every frame, which flickers less where the image
-    does not move (docs/notes/seeds.md); refused with ``reproject``, whose
-    reused samples would repeat the new frame's own.  ``temporal``:
+    ``seed_mode``: ``"animated"`` gives each frame the seed ``options.seed +
+    frame`` (Cycles' animated seed), so samples reused from the previous frame
+    are independent of the new frame's; ``"fixed"`` gives every frame
+    ``options.seed`` (Cycles' default without the animated seed): the same
+    noise pattern in every frame, which flickers less (docs/notes/seeds.md:
+    temporal error 0.36-0.38x for uniform, 0.63-0.69x for oidn, 0.88-0.93x
+    for lp at 1.03-1.08x its per-frame relMSE); refused with ``reproject``,
+    whose reused samples would repeat the new frame's own.  ``"auto"``
+    (default): fixed, animated with ``reproject``.  ``temporal``:
     - ``"none"``: frames are independent;
     - ``"reproject"``: after each frame's initial pass, the previous frame's
       accumulated samples are forward-reprojected into it where valid (Schalk
@@ -1067,12 +1069,12 @@ class FramesJob:
     """
 
     MODES = ("none", "reproject", "lp")
-    SEED_MODES = ("animated", "fixed")
+    SEED_MODES = ("auto", "animated", "fixed")
 
     def __init__(self, scene, view_layer, options: Options, out_pattern: str, frames: list,
                  reference_pattern: str | None = None, temporal: str = "none",
                  reproject_params: dict | None = None, temporal_params: dict | None = None,
-                 view_layers=None, seed_mode: str = "animated", **job_kw):
+                 view_layers=None, seed_mode: str = "auto", **job_kw):
         """``view_layers``: several view layers render each frame as a
         :class:`LayersJob` (default: ``[view_layer]``, a RenderJob)."""
         if temporal not in self.MODES:
@@ -1082,7 +1084,8 @@ class FramesJob:
         if seed_mode == "fixed" and temporal == "reproject":
             raise JobError("--temporal reproject needs --seed-mode animated: with a fixed seed the "
                            "reused samples repeat the new frame's own")
-        self.seed_mode = seed_mode
+        self.seed_mode = seed_mode if seed_mode != "auto" else \
+            ("animated" if temporal == "reproject" else "fixed")
         self.view_layers = list(view_layers) if view_layers else [view_layer]
         if len(self.view_layers) > 1 and temporal != "none":
             raise JobError("--temporal works on one view layer: choose it with --view-layer")

@@ -295,9 +295,14 @@ def test_a_fixed_seed_repeats_the_noise_of_a_still_shot_and_the_animated_one_doe
     assert same == ([True, True] if mode == "fixed" else [False, False])
 
 
-def test_a_fixed_seed_with_reprojection_is_refused(tmp_path):
+def test_a_fixed_seed_with_reprojection_is_refused_and_auto_picks_the_seed_by_mode(tmp_path):
     from cycles_adaptive.operators.job import FramesJob, JobError
     scene = build_scene(8, 8)
+    vl, opts = bpy.context.view_layer, Options(method="var", spp=2, seed=3)
+    auto = FramesJob(scene, vl, opts, str(tmp_path / "a_####.exr"), [1, 2])
+    assert auto.seed_mode == "fixed" and auto.frame_seed(2) == 3
+    rep = FramesJob(scene, vl, opts, str(tmp_path / "r_####.exr"), [1, 2], temporal="reproject")
+    assert rep.seed_mode == "animated" and rep.frame_seed(2) == 5
     with pytest.raises(JobError, match="needs --seed-mode animated"):
         FramesJob(scene, bpy.context.view_layer, Options(method="var", spp=2), str(tmp_path / "f_####.exr"),
                   [1, 2], temporal="reproject", seed_mode="fixed")
