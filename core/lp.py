@@ -70,19 +70,29 @@ Choices where the paper leaves room (each also stated where it is made):
   one standard error of the minimum (:func:`select_windows`).
 * **Channels.**  The paper applies the method "to each channel independently":
   the models, errors and optimal windows are per RGB channel; the normal
-  matrix (shared by the channels) is built once.  A pixel counts as
-  "predicted" in Sec. 5.1 when all three channels cover it with a blended
-  error of at most 4x the typical variance around it
-  (:meth:`_Accumulator.predicted`: a highlight's model must not stand in
-  for its dark neighbours).
-* **Blending** (Sec. 5.1 averages): weights taper to 0 at the window border
-  and fall with the model's estimated error (:func:`blend_weights`), against
-  seams and against a highlight's model overriding its neighbours'.
+  matrix (shared by the channels) is built once.
+* **Coverage (Sec. 5.1).**  The paper counts a pixel as predicted when one
+  model covers it.  Here all three channels must cover it with tapers
+  (:func:`taper`) summing to at least ``COVER_WEIGHT`` = 0.5 (several
+  overlapping models: the first grid of spacing 2R + 1 tiles the image with
+  abutting windows, whose seams no blend can hide) and with a blended error
+  of at most 4x the typical variance around it (a highlight's model must not
+  stand in for its dark neighbours) (:meth:`_Accumulator.predicted`).
+* **Blending** (Sec. 5.1 "simply averages" the overlapping predictions):
+  weighted by a separable taper whose value, slope and curvature reach 0 at
+  the window border (:func:`taper`), over the model's estimated error
+  (:func:`blend_weights`), against seams and against a highlight's model
+  overriding its neighbours'.
 * **Mean-preserving blend.**  After the last pass every model's intercept
   is moved by its residual weighted with its share of the final blend
-  (at most ``OFFSET_LIMIT`` = 3 standard errors of its window mean), so the
+  (at most ``OFFSET_LIMIT`` = 10 standard errors of its window mean), so the
   blend keeps the input's sum instead of losing the energy of bright pixels
   that the models spread over their windows (:func:`_mean_offsets`).
+* **The pixel's own value** enters where it lies more than
+  ``OUTLIER_SIGMA`` = 10 typical standard deviations from the blend (a
+  highlight smaller than any window), by the same inverse-error weighting,
+  with the models' error there estimated from the residual (:func:`_own_pixel`).
+  It keeps a one-pixel highlight the samples resolve, not a firefly.
 * **Non-negative output.**  Predictions are bounded below by
   ``min(0, window minimum)`` (:func:`_lower_bound`; the paper is silent).
 * **TSVD rank rule** (after the authors' WLR code, Moon et al. 2014): inside
@@ -121,6 +131,7 @@ from __future__ import annotations
 
 import threading
 from dataclasses import dataclass
+from functools import lru_cache
 
 import numpy as np
 
@@ -859,8 +870,8 @@ def _fit_frame(frame: _Frame, params: Params, keep_models: bool = False) -> LPFi
         allc = np.concatenate(centres)
         cfeat = np.zeros((len(allc), frame.dim))
         cfeat[:, 2:] = frame.planes[:frame.dim - 2, frame.flat(allc[:, 0], allc[:, 1])].T
-    frame.release()                      # the inputs are no longer needed: lower the peak
-    image, error, dxi, radius = acc.averages()
+    image, error, dxi, radius = acc.averages()      # reads the pixels' own values (:func:`_own_pixel`)
+    frame.release()                      # the inputs are no longer needed
     c_rad, c_rank, c_err = placed["r_opt"], placed["rank"], placed["xi_opt"]
     out = LPFit(
         image=image,
@@ -952,7 +963,7 @@ def _place_centres(frame: _Frame, acc: _Accumulator, params: Params, chunk: int,
 
 #: the blend's mean correction of a model (:func:`_mean_offsets`) is at most this
 #: many standard errors of its window mean, ``sqrt(s_typ / |k|)``
-OFFSET_LIMIT = 3.0
+OFFSET_LIMIT = 10.0
 
 
 def _mean_offsets(frame: _Frame, acc: _Accumulator, placed: dict, radius: int, chunk: int) -> np.ndarray:
@@ -982,7 +993,7 @@ def _mean_offsets(frame: _Frame, acc: _Accumulator, placed: dict, radius: int, c
     dy, dx, ring, _ = ring_layout(radius)
     k = len(ring)
     offs = dy * frame.wp + dx
-    dist = ring.astype(np.float64)
+    table = _taper_table(radius)
     positions = np.arange(k)
     nf = frame.dim - 2
     wsum = acc.wsum
@@ -1014,7 +1025,7 @@ def _mean_offsets(frame: _Frame, acc: _Accumulator, placed: dict, radius: int, c
             for c in range(3):
                 r = r_opt[sl, c]
                 inside = positions[None, :] < ((2 * r + 1) ** 2)[:, None]
-                wt = blend_weights(dist[None, :], r[:, None].astype(np.float64), xi_opt[sl, c, None]) * inside
+                wt = _weight(table[r], xi_opt[sl, c, None])                  # blend_weights
                 total = np.take(wsum[c], index)
                 share = wt / np.where(total > 0, total, 1.0) * usable
                 yc = np.take(frame.planes[frame.c_y + c], index)
@@ -1023,7 +1034,8 @@ def _mean_offsets(frame: _Frame, acc: _Accumulator, placed: dict, radius: int, c
                 m = np.where(den > 0, num / np.where(den > 0, den, 1.0), 0.0)
                 typ = frame.var_typical[c, index[:, 0]].astype(np.float64)
                 cnt = np.maximum((usable * inside).sum(axis=1), 1.0)
-                cap = np.where(np.isfinite(typ), OFFSET_LIMIT * np.sqrt(np.maximum(typ, 0.0) / cnt), 0.0)
+                with np.errstate(invalid="ignore"):
+                    cap = np.where(np.isfinite(typ) & (typ > 0), OFFSET_LIMIT * np.sqrt(np.maximum(typ, 0.0) / cnt), 0.0)
                 m = np.clip(m, -cap, cap)
                 offset[sl, c] = m
                 val = np.maximum(pred[:, c] + m[:, None], lower[sl, c, None])
@@ -1045,30 +1057,77 @@ def _mean_offsets(frame: _Frame, acc: _Accumulator, placed: dict, radius: int, c
 #: a pixel counts as predicted (Sec. 5.1) when its models' error is at most this
 #: multiple of the typical variance around it (:meth:`_Accumulator.predicted`)
 COVER_TOLERANCE = 4.0
+#: a pixel counts as predicted (Sec. 5.1) when the tapers (:func:`taper`) of its
+#: models sum to at least this (:meth:`_Accumulator.predicted`)
+COVER_WEIGHT = 0.5
 #: errors below / above which :func:`blend_weights` clips (squared radiance)
 _XI_CLIP = 1e-30
 
 
-def blend_weights(dist: np.ndarray, radius: np.ndarray, xi: np.ndarray) -> np.ndarray:
-    """Weight of a model's prediction at a pixel of its window, where several
-    models overlap (Sec. 5.1 of Moon et al. 2015 "simply averages" them).
+def taper(dy: np.ndarray, dx: np.ndarray, radius: np.ndarray) -> np.ndarray:
+    """The spatial part of a model's blend weight at offset (dy, dx) from its
+    centre, for a window of radius r: ``h(dy / (r + 1)) h(dx / (r + 1))``,
+    ``h(t) = cos^3(pi t / 2)`` for |t| < 1, 0 outside the window
+    (``max(|dy|, |dx|) > r``).  All arrays broadcast together.
 
-    ``((r + 1 - d) / (r + 1))^2 / xi_c(k_opt)``, d the Chebyshev distance of
-    the pixel from the centre, r the model's radius, xi its estimated error
-    (clipped to [1e-30, 1e30]).  Two departures from the plain average, both
-    because it left artefacts: (1) the taper: a model entering at its window
-    border with full weight makes a step of (its prediction - the others') /
-    count, the rectangular seams seen on smooth walls; with the taper every
-    model enters with a weight near 0, so the blend is continuous, and Eq. 1
-    is a Taylor expansion at x_c whose remainder grows with the distance, so
-    nearer models deserve more weight anyway; (2) the inverse estimated error
+    Separable and smooth: 1 at the centre with a flat top (no kink there or
+    along the diagonals, as a taper of the Chebyshev distance has), and its
+    value, slope and curvature reach 0 together where the window ends (at
+    distance r + 1), so a model fades in and out of the blend without a step,
+    a kink or a jump in curvature.  The power 3: a linear model's error grows
+    towards its window border, so the blend is roughest where the shares bend
+    there; cos^2 (a partition of unity on a grid of spacing r + 1) left 1.5x
+    the interior roughness next to window borders on a noise-free gradient,
+    cos^3 1.2x, cos^4 1.1x with 20-50 % more centres (docs/notes/lp.md)."""
+    r1 = np.asarray(radius, np.float64) + 1.0
+    ty = np.cos((0.5 * np.pi) * (np.asarray(dy, np.float64) / r1))
+    tx = np.cos((0.5 * np.pi) * (np.asarray(dx, np.float64) / r1))
+    inside = np.maximum(np.abs(dy), np.abs(dx)) <= np.asarray(radius)
+    return np.where(inside, np.abs(ty * tx) ** 3, 0.0)
+
+
+def blend_weights(dy: np.ndarray, dx: np.ndarray, radius: np.ndarray, xi: np.ndarray) -> np.ndarray:
+    """Weight of a model's prediction at a pixel of its window, where several
+    models overlap (Sec. 5.1 of Moon et al. 2015 "simply averages" them):
+    ``taper(dy, dx, r) / xi_c(k_opt)`` (:func:`taper`), xi the model's
+    estimated error (clipped to [1e-30, 1e30]).  All arrays broadcast together.
+
+    Two departures from the plain average, both because it left artefacts:
+    (1) the taper: a model entering the average at its window border with full
+    weight makes a step of (its prediction - the others') / count, the
+    rectangular seams on smooth walls; a weight that goes to 0 with a zero
+    slope at the border removes the step and the kink, and Eq. 1 is a Taylor
+    expansion at x_c whose remainder grows with the distance, so nearer models
+    deserve more weight anyway; (2) the inverse estimated error
     (inverse-MSE weighting of unbiased-ish estimators): a model whose window
     holds a highlight has a large error everywhere in it (the mean error Eq. 2
     minimises is dominated by the highlight) and must not override the
-    accurate models of its dark neighbours.  All arrays broadcast together."""
-    r1 = radius + 1.0
-    taper = (r1 - dist) / r1
-    return taper * taper / np.clip(xi, _XI_CLIP, 1.0 / _XI_CLIP)
+    accurate models of its dark neighbours."""
+    return _weight(taper(dy, dx, radius), xi)
+
+
+def _weight(tap: np.ndarray, xi: np.ndarray) -> np.ndarray:
+    """:func:`blend_weights` from the taper: ``tap / clip(xi, 1e-30, 1e30)``."""
+    return tap / np.clip(xi, _XI_CLIP, 1.0 / _XI_CLIP)
+
+
+def _taper_table(radius: int) -> np.ndarray:
+    """:func:`taper` of every window radius r = 0 .. R at the ring-ordered
+    offsets of :func:`core.lp_solve.ring_layout` (R + 1, K), read-only."""
+    return _taper_table_cached(int(radius))
+
+
+@lru_cache(maxsize=None)
+def _taper_table_cached(radius: int) -> np.ndarray:
+    dy, dx, _, _ = ring_layout(radius)
+    out = taper(dy[None, :], dx[None, :], np.arange(radius + 1)[:, None])
+    out.flags.writeable = False
+    return out
+
+
+def _radius_of(k: int) -> int:
+    """R of a ring-ordered window of K = (2R+1)^2 pixels."""
+    return (int(round(np.sqrt(k))) - 1) // 2
 
 
 class _Accumulator:
@@ -1085,6 +1144,8 @@ class _Accumulator:
         # model count: float32 holds them to ~1e-7 (12 bytes per pixel each)
         self.err = np.zeros((3, size), np.float32)
         self.dxi = np.zeros((3, size), np.float32)
+        # the covering models' tapers (:func:`taper`), for Sec. 5.1's coverage test
+        self.tsum = np.zeros((3, size), np.float32)
         self.cnt = np.zeros(size, np.float32)           # models x channels, exact below 2^24
         self.rad = np.zeros(size, np.float32)
 
@@ -1110,7 +1171,7 @@ class _Accumulator:
         Windows are prefixes of the ring-ordered pixel list, so only the
         ``(2 r_opt + 1)^2`` pixels inside are scattered."""
         index, r_opt = res["index"], res["r_opt"]
-        dist = res["ring"].astype(np.float64)
+        table = _taper_table(_radius_of(index.shape[1]))                # (R+1, K)
         lo = int(index.min())
         span = int(index.max()) + 1 - lo
         k = index.shape[1]
@@ -1124,8 +1185,8 @@ class _Accumulator:
             inside = positions[None, :] < length[:, None]                # (N, K), a prefix per row
             local = index[inside]                                        # entries, centre by centre
             xi = np.repeat(res["xi_opt"][:, c], length)
-            wt = blend_weights(np.broadcast_to(dist, inside.shape)[inside],
-                               np.repeat(r_opt[:, c].astype(np.float64), length), xi)
+            tap = table[r_opt[:, c]][inside]                             # taper(dy, dx, r_opt)
+            wt = _weight(tap, xi)                                        # blend_weights
             # xi n_i^(-4/(d_c+4)), the error reduction rate of Moon et al. 2014 (n clamped to >= 1)
             dxi = np.take(logn, local)
             dxi *= np.repeat(expo, length)
@@ -1136,8 +1197,9 @@ class _Accumulator:
             del inside
             xi *= wt
             dxi *= wt
-            sums += [np.bincount(local, xi, span), np.bincount(local, dxi, span)]
-            del xi, dxi, wt
+            sums += [np.bincount(local, xi, span), np.bincount(local, dxi, span),
+                     np.bincount(local, tap, span)]
+            del xi, dxi, wt, tap
             per_channel.append(sums)
             # counts and radii: one bincount per channel, added in channel order
             cnt.append(np.bincount(local, None, span).astype(np.float32))
@@ -1150,22 +1212,30 @@ class _Accumulator:
         order and with the roundings of the serial accumulation)."""
         lo, span, per_channel, cnt, rad = contrib
         sl = slice(lo, lo + span)
-        for c, (wsum, pred, err, dxi) in enumerate(per_channel):
+        for c, (wsum, pred, err, dxi, tsum) in enumerate(per_channel):
             self.wsum[c, sl] += wsum
             self.pred[c, sl] += pred
             self.err[c, sl] += err
             self.dxi[c, sl] += dxi
+            self.tsum[c, sl] += tsum
             self.cnt[sl] += cnt[c]
             self.rad[sl] += rad[c]
 
     def predicted(self) -> np.ndarray:
         """(H, W) bool: the pixels Sec. 5.1 counts as predicted by the models
-        so far: covered in every channel, with a blended estimated error of at
-        most ``COVER_TOLERANCE`` times the typical variance of the mean around
-        the pixel (the median over its 3x3 neighbourhood; any covering model
-        counts where that is unknown).
+        so far: covered in every channel by models whose tapers
+        (:func:`taper`) sum to at least ``COVER_WEIGHT``, with a blended
+        estimated error of at most ``COVER_TOLERANCE`` times the typical
+        variance of the mean around the pixel (the median over its 3x3
+        neighbourhood; any covering model counts where that is unknown).
 
-        The paper counts any covering model; but a model whose window holds a
+        The paper counts any covering model.  But (1) Sec. 5.1's first grid,
+        spacing 2R + 1, tiles the image with windows of radius R that only
+        abut, so on smooth regions every pixel had one model and the image was
+        a mosaic of 19 x 19 blocks whose borders no blend weight can hide (the
+        block seams on smooth walls); a taper sum of 0.5 (a pixel half-way
+        between two models' centres, as a grid of spacing r + 1 would give)
+        asks for the overlap, so models cross-fade; and (2) a model whose window holds a
         highlight has a large error over the whole window, and the dark pixels
         it covers then never get a model of their own (the glossy scene: 1.3
         predicted where the truth is 0.1).  The median of nine variance
@@ -1178,7 +1248,7 @@ class _Accumulator:
         def band(rows):
             y0, y1 = rows
             wsum = self.crop(self.wsum)[:, y0:y1]
-            cnt = wsum > 0                              # weights are > 0 inside a window
+            cnt = self.crop(self.tsum)[:, y0:y1] >= COVER_WEIGHT
             with np.errstate(divide="ignore", invalid="ignore"):
                 err = self.crop(self.err)[:, y0:y1] / wsum
                 bad = err > COVER_TOLERANCE * self.crop(f.var_typical)[:, y0:y1]
@@ -1190,7 +1260,8 @@ class _Accumulator:
     def averages(self):
         """The weighted averages over the models covering each pixel (Sec. 5.1,
         :func:`blend_weights`), the sums released once read: ``image`` (H, W, 3)
-        (non-finite -> 0), ``error`` (H, W) (RGB mean), ``delta_error``
+        (non-finite -> 0; with the pixels' own values where the models miss
+        them, :func:`_own_pixel`, read from the frame's planes), ``error`` (H, W) (RGB mean), ``delta_error``
         (H, W, 3) (errors through :func:`_finite_errors`) and ``radius``
         (H, W) the plain mean r_opt over the covering models and channels.
         Per pixel, in bands of rows on :mod:`core.parallel`'s pool; the
@@ -1212,9 +1283,12 @@ class _Accumulator:
             # the image, the radii and each band's largest finite errors
             y0, y1 = rows
             err, dx, safe = ratios(y0, y1)
-            img = np.moveaxis(self.crop(self.pred)[:, y0:y1] / safe, 0, -1)
+            img = self.crop(self.pred)[:, y0:y1] / safe
             img[~np.isfinite(img)] = 0.0
-            image[y0:y1] = img
+            planes = self.crop(f.planes)
+            img = _own_pixel(img, planes[f.c_y:f.c_y + 3, y0:y1], planes[f.c_v:f.c_v + 3, y0:y1],
+                             self.crop(f.var_typical)[:, y0:y1], planes[f.c_w, y0:y1] > 0)
+            image[y0:y1] = np.moveaxis(img, 0, -1)
             radius[y0:y1] = self.crop(self.rad[None])[0, y0:y1] / np.maximum(self.crop(self.cnt[None])[0, y0:y1], 1.0)
             return [float(a[np.isfinite(a)].max()) if np.isfinite(a).any() else None for a in (err, dx)]
 
@@ -1228,8 +1302,49 @@ class _Accumulator:
             dxi[y0:y1] = np.moveaxis(_finite_errors(dx, top[1]), 0, -1)
 
         parallel.run_bands(errors, h, _BAND_ROWS, THREAD_MIN_PIXELS, w)
-        self.wsum = self.pred = self.err = self.dxi = None
+        self.wsum = self.pred = self.err = self.dxi = self.tsum = None
         return image, error, dxi, radius
+
+
+#: a pixel's own value enters its output (:func:`_own_pixel`) where it lies more
+#: than this many typical standard deviations of the mean from the blend
+OUTLIER_SIGMA = 10.0
+
+
+def _own_pixel(blend: np.ndarray, y: np.ndarray, var: np.ndarray, typical: np.ndarray,
+               usable: np.ndarray) -> np.ndarray:
+    """Blend the models' prediction with the pixel's own value (its k(0)
+    model) where the models clearly miss it, by inverse errors as in
+    :func:`blend_weights`: ``f + (y - f) max(0, 1 - t s / (y - f)^2)``,
+    t = ``COVER_TOLERANCE``.
+
+    Why: a structure the features do not explain and smaller than any model's
+    window (a one-pixel highlight) is inside every covering model's window,
+    and the window-mean error of Eq. 4 (what the blend weights and Sec. 5.1's
+    coverage read) hardly sees it, so the models predict the surroundings
+    there and the highlight's energy is lost.  At such a pixel the models'
+    squared error is estimated from its own residual, ``b^2 = (y - f)^2 -
+    t s`` (s its variance of the mean, taken at the tolerance t the coverage
+    test grants: a variance from a few subsets is often several times low,
+    and a firefly is a pixel whose variance was underestimated), the pixel's
+    own error as ``t s``, and their inverse-error blend ``(f / b^2 + y / (t
+    s)) / (1 / b^2 + 1 / (t s))`` is the expression above (a positive-part
+    Wiener gain: nothing of y where the residual is within its noise).  Only
+    where ``|y - f| > OUTLIER_SIGMA sqrt(s_typ)`` (s_typ the 3x3 median
+    variance): elsewhere the window estimates stand.  With t = 1 sparse
+    fireflies kept 1.6-2x the error (docs/notes/lp.md).  Ours; the paper
+    predicts every pixel from the models.  Arrays (3, ...) per channel;
+    missing pixels (``usable`` False), unknown variances and a typical
+    variance of 0 (no noise level known around the pixel: a dark region
+    without hits, where a zero-variance pixel is no exact one) are left to
+    the models."""
+    res = y - blend
+    known = usable & np.isfinite(var) & np.isfinite(typical) & (typical > 0)
+    with np.errstate(invalid="ignore", over="ignore"):
+        far = known & (res * res > OUTLIER_SIGMA * OUTLIER_SIGMA * np.where(known, typical, 0.0))
+        r2 = np.where(far, res * res, 1.0)
+        gain = np.where(far, np.clip(1.0 - COVER_TOLERANCE * np.where(far, var, 0.0) / r2, 0.0, 1.0), 0.0)
+    return blend + np.where(far, res, 0.0) * gain
 
 
 #: rows per band of the accumulator's per-pixel passes (:meth:`_Accumulator.predicted`,
