@@ -257,9 +257,8 @@ def load_checkpoint(path: str):
                 b.features[name] = Stat(data[key], data["feat_m2__" + name])
         arrays = {k[len("array__"):]: data[k] for k in files if k.startswith("array__")}
         state = _decode(json.loads(bytes(data["state"]).decode()), data)
-    except StorageError as exc:
-        raise StorageError(f"{path}: damaged checkpoint ({exc})" if not str(exc).startswith(path)
-                           else str(exc)) from None
+    except StorageError as exc:  # raised by the decoding below, which does not know the path
+        raise StorageError(f"{path}: damaged checkpoint ({exc})") from None
     except Exception as exc:
         raise StorageError(f"{path}: damaged checkpoint ({type(exc).__name__}: {exc})") from None
     return b, arrays, meta, state

@@ -101,18 +101,6 @@ def table(before, after):
               f"{100 * ra['bright']:+.2f} -> {100 * rb['bright']:+.2f} % |")
 
 
-def load_before(root):
-    import importlib
-    import importlib.util
-    name = "lp_before_pkg"
-    spec = importlib.util.spec_from_file_location(name, os.path.join(root, "__init__.py"),
-                                                  submodule_search_locations=[root])
-    mod = importlib.util.module_from_spec(spec)
-    sys.modules[name] = mod
-    spec.loader.exec_module(mod)
-    return importlib.import_module(name + ".core.lp")
-
-
 def seams(mods, seeds):
     """Border / interior and region-column ratios and MSE on the seam scene,
     brightness on the highlight scene, per module and seed."""
@@ -151,6 +139,7 @@ def main(argv=None):
     elif a.command == "table":
         table(*a.tags)
     else:
+        from lp_study import load_before  # another checkout's LP, as lp_study imports it
         mods = ([("before", load_before(a.before))] if a.before else []) + [("after", lp)]
         seams(mods, [int(s) for s in a.seeds.split(",")])
     return 0
