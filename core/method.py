@@ -176,11 +176,16 @@ def fields_by_name(cls) -> dict:
 
 def check_ranges(obj) -> None:
     """ValueError naming the first numeric field of dataclass ``obj`` outside
-    its ``min``/``max`` metadata (the one range check of Params and Options)."""
+    its ``min``/``max`` metadata, or not finite where it has a bound (NaN
+    compares false with every bound and would pass silently), the one range
+    check of Params and Options."""
     for f in fields(obj):
         v = getattr(obj, f.name)
         lo, hi = f.metadata.get("min"), f.metadata.get("max")
         if isinstance(v, (int, float)) and not isinstance(v, bool):
+            if isinstance(v, float) and not np.isfinite(v) and (lo is not None or hi is not None):
+                owner = getattr(obj, "OWNER", None) or type(obj).__module__.split(".")[-1] + " parameter"
+                raise ValueError(f"{owner} {f.name}={v} must be a finite number")
             if lo is not None and v < lo or hi is not None and v > hi:
                 owner = getattr(obj, "OWNER", None) or type(obj).__module__.split(".")[-1] + " parameter"
                 bound = (f"in [{lo}, {hi}]" if lo is not None and hi is not None

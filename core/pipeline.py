@@ -106,12 +106,13 @@ class Options:
                            "reconstruction less", 0.0, None, label="Consistency Guard", soft_max=10.0)
     max_seconds: float = param(0.0, "stop sampling after this many seconds (0: no limit)", 0.0, None,
                                label="Time Limit", subtype="TIME_ABSOLUTE")
-    #: the loop then doubles the samples each round and checks the estimate
-    #: before each (see AdaptiveRun.steps); --spp is the most it renders
+    #: the loop then checks the estimate before each round and sizes the
+    #: round from the fitted convergence (next_target_spp); --spp is the most it renders
     target_error: float = param(0.0, "keep sampling until the final image's estimated relMSE is "
                                 "below this (0: off); the samples per pixel are then the most the "
-                                "run may render, and the rounds double the samples (iterations is "
-                                "ignored)", 0.0, None, label="Target Error", soft_max=1.0)
+                                "run may render, and each round renders what the error's measured "
+                                "convergence predicts reaches it, at most doubling the samples "
+                                "(iterations is ignored)", 0.0, None, label="Target Error", soft_max=1.0)
     params: dict = field(default_factory=dict, metadata={"cli": False, "ui": False})
     #: extra passes to read beyond the method's own
     features: tuple = field(default=(), metadata={"cli": False, "ui": False})
@@ -336,11 +337,14 @@ class AdaptiveRun:
                 self.target_met = yield from self._target_reached()
                 if self.target_met:
                     break
-                # double the samples: the estimate is checked at 1x, 2x, 4x .. the initial pass
-                last = self.samples_rendered >= self.remaining
+                # to the spp the fitted convergence predicts reaches the target (next_target_spp)
+                step = self._target_step()
+                last = step >= self.remaining - tol
             else:
                 last = self.iteration == opts.iterations - 1 or not self.method.ADAPTIVE
             entry = {"iteration": self.iteration + 1, "tasks": 0, "samples": 0, "overshoot": 0}
+            if target:  # the check that planned this iteration (kept by checkpoints: resume replans alike)
+                entry["target_check"] = list(self.estimates[-1])
             # the last iteration may take up to TOP_UP more planning rounds to
             # spend what rounding to rectangles left over (each a new map)
             for _ in range(1 + (TOP_UP if last else 0)):
@@ -348,7 +352,7 @@ class AdaptiveRun:
                     break
                 left = max(1, opts.iterations - self.iteration)
                 if target:
-                    budget = self.remaining if last else self.samples_rendered
+                    budget = self.remaining if last else step
                 else:
                     budget = self.remaining if last else int(self.remaining / left)
                 rendered = yield from self._round(budget, entry)
@@ -475,16 +479,20 @@ class AdaptiveRun:
 
     def _target_reached(self):
         """Reconstruct what is rendered (a :class:`Work`) and compare its
-        estimated relMSE (:func:`core.metrics.estimated_relmse` of the
-        method's error) with ``Options.target_error``; the result is kept for
-        the round's sampler.  Returns True once below."""
+        estimated relMSE (:func:`core.metrics.robust_relmse` of the method's
+        error: the mean of the per-pixel terms with the firefly outliers
+        winsorised) with ``Options.target_error``; the result is kept for the
+        round's sampler, the check in :attr:`estimates`.  Returns True once
+        below."""
+        if not self.estimates:  # a resumed run: the checks made before its checkpoint
+            self.estimates = [tuple(h["target_check"]) for h in self.history if "target_check" in h]
         samples = self.samples_rendered
         work = Work(lambda: self._timed_reconstruct(), f"iteration {self.iteration + 1}: estimating the "
                     f"error ({self.method.NAME})", self.main_thread_only())
         yield Progress("adapt", self.iteration, self._fraction(), work.label, work=work)
         result = work.result()
         self._result = (samples, result)
-        est = metrics.estimated_relmse(result.image, result.error)
+        est = metrics.robust_relmse(result.image, result.error)
         spp = samples / self.pixels
         self.estimates.append((spp, est))
         reached = est <= self.options.target_error
@@ -492,6 +500,17 @@ class AdaptiveRun:
                        f"estimated relMSE {est:.3g} at {spp:.2f} spp "
                        f"({'below' if reached else 'above'} the target {self.options.target_error:g})")
         return reached
+
+    def _target_step(self) -> int:
+        """Samples of the next round of a target-error run: up to the spp
+        :func:`next_target_spp` predicts from the checks so far; whole spp
+        for a method that samples uniformly (its rounds are sample subsets),
+        at least one sample per pixel."""
+        now = self.samples_rendered / self.pixels
+        grow = max(next_target_spp(self.estimates, self.options.target_error) - now, 0.0)
+        if not self.method.ADAPTIVE:
+            return max(1, int(round(grow))) * self.pixels
+        return max(self.pixels, int(round(grow * self.pixels)))
 
     def _timed_reconstruct(self):
         t0 = time.perf_counter()
@@ -796,6 +815,64 @@ def _within(plan, limit: int):
         t = tasks.pop()
         covered[t.y0:t.y1, t.x0:t.x1] -= t.samples
     return tasks, covered
+
+
+#: target-error schedule (next_target_spp): each round aims at this share of
+#: the target, so a check lands below it despite the estimate's noise ...
+TARGET_AIM = 0.9
+#: ... grows the samples by at most this factor (a bad fit cannot overshoot
+#: by more than one doubling, the old schedule's step) and at least by this
+#: one (a check just above the target is not followed by a string of tiny steps)
+TARGET_MAX_GROWTH = 2.0
+TARGET_MIN_GROWTH = 1.1
+#: the fitted rate is clamped to this range; the first step (one check, no
+#: fit) assumes 1, the rate of an unbiased mean of independent samples
+TARGET_RATE_RANGE = (0.25, 2.0)
+TARGET_PRIOR_RATE = 1.0
+#: the rate is fitted between the latest check and the latest one at least
+#: this factor fewer spp before it (the earliest where none is)
+TARGET_FIT_SPAN = 1.5
+
+
+def convergence_rate(estimates) -> float | None:
+    """Rate ``q`` of ``est ~ C spp^-q`` through two checks ``(spp, est)``: the
+    latest and the latest earlier one with at most ``1 / TARGET_FIT_SPAN`` of
+    its spp (else the earliest), ``q = log(e0 / e1) / log(n1 / n0)``, clamped
+    to ``TARGET_RATE_RANGE`` (an estimate that grew gives the smallest rate,
+    i.e. the largest step).  None without two usable checks (positive, finite,
+    increasing spp)."""
+    pts = [(float(n), float(e)) for n, e in estimates]
+    if len(pts) < 2:
+        return None
+    n1, e1 = pts[-1]
+    earlier = [p for p in pts[:-1] if p[0] * TARGET_FIT_SPAN <= n1]
+    n0, e0 = earlier[-1] if earlier else pts[0]
+    if not (np.isfinite([n0, n1, e0, e1]).all() and n1 > n0 > 0 and e0 > 0 and e1 > 0):
+        return None
+    q = np.log(e0 / e1) / np.log(n1 / n0)
+    return float(np.clip(q, *TARGET_RATE_RANGE))
+
+
+def next_target_spp(estimates, target: float) -> float:
+    """The spp of the next target check from the checks ``(spp, est)`` so far
+    (the last one above ``target``): with ``est = C n^-q`` through the last
+    check ``(n, e)`` (``q``: :func:`convergence_rate`, ``TARGET_PRIOR_RATE``
+    with one check) the spp where it reaches ``TARGET_AIM * target``,
+
+        n' = n (e / (TARGET_AIM target))^(1/q),
+
+    clamped to ``[TARGET_MIN_GROWTH n, TARGET_MAX_GROWTH n]``.  The last round
+    thus lands near the target instead of at the next power of two, and a
+    rate measured below 1 (a denoiser's, a stratified sequence's above it)
+    steps accordingly."""
+    n, e = (float(v) for v in estimates[-1])
+    q = convergence_rate(estimates) or TARGET_PRIOR_RATE
+    aim = TARGET_AIM * float(target)
+    if not (np.isfinite(e) and e > 0 and aim > 0):
+        return TARGET_MAX_GROWTH * n
+    with np.errstate(over="ignore", divide="ignore"):
+        growth = (np.float64(e) / np.float64(aim)) ** (1.0 / q)  # inf beyond float range: the clamp
+    return float(n * np.clip(growth, TARGET_MIN_GROWTH, TARGET_MAX_GROWTH))
 
 
 def subset_tasks(width: int, height: int, spp: int, subsets: int, frame: int = 0,
