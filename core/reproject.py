@@ -31,7 +31,14 @@ supported.
 Passes (:data:`PASSES`): ``position`` world-space first hit (Position pass),
 ``depth`` Cycles' Denoising Depth (ray length to the first hit; a camera
 z-depth pass is accepted too), ``glossy`` = Glossy Direct + Indirect,
-``transmission`` = Transmission Direct + Indirect, ``object_index`` (IndexOB).
+``transmission`` = Transmission Direct + Indirect, ``glossy_color`` /
+``transmission_color`` (their colour passes), ``object_index`` (IndexOB),
+``normal`` (Denoising Normal, camera space).  Facts measured with bpy 4.5:
+Position (like Depth and IndexOB) is written by sample 0 alone, one hit at one
+sub-pixel offset (identical at 1 and 16 spp), while Denoising Depth and Normal
+are pixel means; the light passes are divided by their colour pass (Combined
+equals the sum of colour x (direct + indirect) + emission + environment to
+6e-8), and Cycles' camera space looks down +Z (Blender's down -Z).
 Every feature pass of ``current`` must also be in ``prev`` (the output Buffers
 carries the same passes as ``current``, so ``current.merge(result.buffers)``
 works).  A missing Position pass in ``prev`` or ``current`` raises
@@ -50,7 +57,8 @@ applies the test and documents it:
                      it on (default) background pixels are reprojected *by
                      direction* (:func:`_clip_coordinates`) and their target
                      must be background too.
-``inconsistent``     position and depth disagree: a pixel mixing surfaces at an
+``inconsistent``     position and depth disagree by more than one surface's
+                     depth change over the pixel: a pixel mixing surfaces at an
                      edge (Sec. 3.2.2's aliasing) or a specular chain
                      (:func:`_inconsistent`); skipped without a depth pass.
 ``outside``          (a) behind the new camera or off its screen (:func:`_inside_frame`).
@@ -59,12 +67,15 @@ applies the test and documents it:
                      occlusion_pixels * footprint`` (:func:`_occluded`).
 ``object_index``     (d) the object under the pixel changed (:func:`_object_changed`);
                      skipped when either frame lacks the pass.
-``specular``         mostly view-dependent light, ``lum(glossy + transmission) /
-                     lum(combined) > max_specular_share`` in either frame: the
-                     thesis never reprojects specular or refractive materials
-                     (:func:`_specular_share`).
+``specular``         mostly view-dependent light, ``lum(glossy + transmission
+                     radiance) / lum(combined) > max_specular_share`` in either
+                     frame: the thesis never reprojects specular or refractive
+                     materials (:func:`_specular_share`).
 ``view_dependence``  (c) the Eq. 15 error bound exceeds ``max_error`` (1/256)
-                     (:func:`_view_dependence_error`).
+                     (:func:`_view_dependence_error`), on radiances pooled
+                     over the pixel's surface (:func:`_pooled_light`), and,
+                     with ``noise_limited``, the estimated change is not below
+                     the noise of the two means (:func:`_change_below_noise`).
 ``changed``          (addition: Sec. 3 assumes a static scene) the reprojected
                      mean and the new frame's own samples differ by more than
                      ``changed_sigma`` (5) standard errors (:func:`_radiance_changed`);
@@ -79,8 +90,9 @@ The view-dependence bound (c), Eq. 15
 Eq. 15 is ``eps = |f_r(V_t, L, N) - f_r(V_{t-1}, L, N)| * A * I``: the change of
 the pixel's *view-dependent* outgoing radiance between the two viewpoints.
 Cycles has no per-pixel roughness or BRDF value, but it does write that
-radiance: the Glossy and Transmission light passes ``S`` (direct + indirect).
-For each channel, with ``S_p`` the previous pixel's value, ``S_t`` the current
+radiance: ``S`` = colour pass x (direct + indirect) light pass, for Glossy and
+for Transmission (:func:`_radiance`).  For each channel, with ``S_p`` the
+previous pixel's value, ``S_t`` the current
 frame's initial-pass value at the target, ``sigma`` their standard errors and
 ``z = confidence``:
 
@@ -94,8 +106,9 @@ frame's initial-pass value at the target, ``sigma`` their standard errors and
   transmission are bounded separately and added (triangle inequality); the
   channel maximum is compared with ``max_error``.
 
-It is conservative for energy-conserving materials (Cycles divides light
-passes by their colour pass); an unknown variance makes the bound infinite,
+Without the colour passes (outputs rendered before they were requested)
+``S`` is the light pass alone, which overstates the radiance by 1 / colour
+(conservative: far fewer pixels validate); an unknown variance makes the bound infinite,
 except for a pass whose mean is exactly 0; a missing glossy or transmission
 pass makes it infinite unless the camera kept its position (or
 ``assume_diffuse`` is set).  The thesis' error is absolute, in image units:
@@ -113,7 +126,8 @@ sample.  A single source is copied bit for bit.
 
 Camera-dependent features are transformed: ``depth`` is shifted by the change
 of distance (or z-depth) of the point, the camera-space ``normal`` is rotated
-by ``R_t R_{t-1}^T`` (its M2 is bounded by ``(sum_j |R_ij| sqrt(M2_j))^2``,
+by ``R_t R_{t-1}^T`` (written in Cycles' camera space, ``F R_t R_{t-1}^T F``
+with F the z flip; its M2 is bounded by ``(sum_j |R_ij| sqrt(M2_j))^2``,
 the off-diagonal scatter being unknown); ``vector`` (motion) is per-frame data
 and is carried unchanged (do not rely on it); the rest are view-independent on
 validated pixels and are carried as they are.
@@ -130,12 +144,20 @@ from .buffers import Buffers, Stat, is_background, luminance
 from .method import param
 
 #: passes the reprojection reads (position is required, the rest are optional)
-PASSES = ("position", "depth", "glossy", "transmission", "object_index")
+PASSES = ("position", "depth", "glossy", "transmission", "glossy_color", "transmission_color",
+          "object_index", "normal")
 
 #: rejection reasons, in the order they are tested (code = index)
 REASONS = ("ok", "empty", "no_position", "background", "inconsistent", "outside", "occluded",
            "object_index", "specular", "view_dependence", "changed", "camera_cut")
 _R = {name: i for i, name in enumerate(REASONS)}
+
+
+#: ``Params.noise_limited``: ``auto`` is resolved by the caller (:func:`resolve_noise_limited`)
+NOISE_LIMITED = ("auto", "on", "off")
+
+#: methods whose image is the sample mean: ``noise_limited = auto`` means on for them
+SAMPLE_MEAN_METHODS = ("uniform", "var")
 
 
 # --------------------------------------------------------------------------- params
@@ -151,6 +173,17 @@ class Params:
         0.5, "pixels whose glossy + transmission light exceeds this share of the combined "
         "luminance are never reprojected (thesis: no specular/refractive reprojection). "
         "Smaller is safer, larger reuses more", 0.0, 1.0, label="Max Specular Share")
+    noise_limited: str = param(
+        "auto", "also reproject where the estimated view-dependent change is below the noise of "
+        "the two sample means being merged (addition: the merged sample mean then has a lower "
+        "expected squared error); off = the thesis' Eq. 15 bound against Max Reprojection Error "
+        "alone; auto = on for methods whose image is the sample mean (uniform, var), off for "
+        "denoisers, which remove the noise it trades against and keep the bias",
+        choices=NOISE_LIMITED, label="Noise-Limited Reuse")
+    view_dependence_radius: int = param(
+        2, "radius of the window over which the glossy / transmission radiance is pooled "
+        "(same object, normal and depth) before the Eq. 15 bound: the thesis evaluates the BRDF "
+        "noise-free, a few samples' radiance is not; 0 = per pixel", 0, 8, label="View Dependence Window")
     confidence: float = param(
         2.0, "z of the upper confidence bounds on noisy glossy/transmission passes in the Eq. 15 "
         "bound; larger is more conservative (fewer glossy pixels reprojected)", 0.0, 10.0, label="Confidence")
@@ -164,6 +197,12 @@ class Params:
     consistency_tolerance: float = param(
         0.01, "relative mismatch allowed between a pixel's position and its depth before it "
         "counts as mixed (edges) or a specular chain; 0 disables the test", 0.0, 1.0, label="Depth Consistency")
+    consistency_pixels: float = param(
+        1.0, "slack of the depth consistency test in pixel footprints times tan(incidence): the "
+        "Position pass is one sample's hit anywhere under the pixel filter (0.75 px radius at "
+        "Blender's default 1.5 px), the depth the pixel mean, so a slanted surface differs by "
+        "up to 0.75 footprints x tan(incidence); 0 = the relative tolerance alone", 0.0, 16.0,
+        label="Depth Consistency Slack (px)")
     object_index_tolerance: float = param(
         1e-3, "largest change of the (pixel-mean) object index still counted as the same object", 0.0, 1.0, label="Object Index Tolerance")
     changed_sigma: float = param(
@@ -182,6 +221,17 @@ class Params:
     chunk: int = param(
         65536, "source pixels processed per vectorised batch (memory ~ 1 KB per pixel in flight)",
         256, 4194304, label="Batch Size")
+
+
+def resolve_noise_limited(params: Params, method: str) -> Params:
+    """``params`` with ``noise_limited = auto`` resolved for ``method``: on
+    where the image is the sample mean (:data:`SAMPLE_MEAN_METHODS`), off
+    for denoisers (measured on the animated scene, docs/notes/reproject.md:
+    uniform 0.67x the relMSE without history, OIDN 1.7x worse with it)."""
+    if params.noise_limited != "auto":
+        return params
+    from dataclasses import replace
+    return replace(params, noise_limited="on" if method in SAMPLE_MEAN_METHODS else "off")
 
 
 def _params(params) -> Params:
@@ -488,13 +538,15 @@ def reproject(prev: Buffers, prev_camera: Camera, current: Buffers, current_came
     prev_depth_all = prev.features["depth"].mean.reshape(-1, prev.features["depth"].mean.shape[-1]) \
         if "depth" in prev.features else None
 
+    pooled = _pooled_light(prev, prev_camera, current, current_camera, have,
+                           params.view_dependence_radius) if view_changed else {}
     chunk = max(int(params.chunk), 1)
     npx = hp * wp
     for s0 in range(0, npx, chunk):
         idx = np.arange(s0, min(npx, s0 + chunk))
         code, tgt = _validate_chunk(idx, prev, prev_camera, current, current_camera, params,
                                     prev_pos_all, prev_depth_all, cur_pos, cur_bg, cur_known,
-                                    view_changed, have, (hp, wp), (h, w))
+                                    view_changed, have, (hp, wp), (h, w), pooled)
         reason.reshape(-1)[idx] = code
         target.reshape(-1)[idx] = np.where(code == 0, tgt, -1)
 
@@ -520,7 +572,7 @@ def reproject(prev: Buffers, prev_camera: Camera, current: Buffers, current_came
 
 
 def _validate_chunk(idx, prev, pcam, cur, ccam, params, prev_pos_all, prev_depth_all,
-                    cur_pos, cur_bg, cur_known, view_changed, have, pshape, cshape):
+                    cur_pos, cur_bg, cur_known, view_changed, have, pshape, cshape, pooled=None):
     """Reason code (N,) int8 (index into :data:`REASONS`, 0 = valid) and target
     flat index (N,) int64 of the previous pixels ``idx`` (N,): the validations
     in the order of :data:`REASONS`, each pixel keeping the first that rejects it."""
@@ -532,8 +584,9 @@ def _validate_chunk(idx, prev, pcam, cur, ccam, params, prev_pos_all, prev_depth
     if not params.background:
         _reject(code, bg, "background")
     if depth is not None and params.consistency_tolerance > 0:
-        _reject(code, _inconsistent(pos, depth[:, 0], bg, pcam, params.consistency_tolerance),
-                "inconsistent")
+        normal = prev.features["normal"].mean.reshape(-1, 3)[idx] if "normal" in prev.features else None
+        _reject(code, _inconsistent(pos, depth[:, 0], bg, pcam, params.consistency_tolerance,
+                                    normal, pshape, params.consistency_pixels), "inconsistent")
     clip, no_direction = _clip_coordinates(pos, bg, idx, pcam, ccam, pshape)
     row, col, inside = _inside_frame(clip, ccam, cshape)
     _reject(code, no_direction | ~inside, "outside")
@@ -546,8 +599,12 @@ def _validate_chunk(idx, prev, pcam, cur, ccam, params, prev_pos_all, prev_depth
     share = _specular_share(prev, cur, idx, tgt, have)
     _reject(code, surf & (share > params.max_specular_share), "specular")
     if view_changed:
-        eps = _view_dependence_error(prev, cur, idx, tgt, have, params.confidence, params.assume_diffuse)
-        _reject(code, surf & ~(eps <= params.max_error), "view_dependence")
+        eps = _view_dependence_error(prev, cur, idx, tgt, have, params.confidence, params.assume_diffuse,
+                                     pooled, params.max_error)
+        fails = ~(eps <= params.max_error)
+        if params.noise_limited != "off" and pooled:     # auto unresolved: on
+            fails &= ~_change_below_noise(prev, cur, idx, tgt, pooled)
+        _reject(code, surf & fails, "view_dependence")
     if params.changed_sigma > 0:
         _reject(code, _radiance_changed(prev, cur, idx, tgt, params.changed_sigma, params.max_error),
                 "changed")
@@ -600,25 +657,65 @@ def _source_points(prev_pos: np.ndarray, prev_depth: np.ndarray | None, idx: np.
 
 
 def _inconsistent(pos: np.ndarray, depth: np.ndarray, bg: np.ndarray, camera: Camera,
-                  tolerance: float) -> np.ndarray:
-    """``inconsistent``: the source is not a single clean first hit, its mean
+                  tolerance: float, normal: np.ndarray | None = None, pshape: tuple = (1, 1),
+                  pixels: float = 0.0) -> np.ndarray:
+    """``inconsistent``: the source is not a single clean surface, its
     position disagrees with its mean depth, ``| |P - C| - depth | > tolerance *
-    |P - C|`` against both the ray length and the camera z-depth.
+    |P - C| + slack`` against both the ray length and the camera z-depth.
 
-    This is the depth test of Sec. 3.2.2 (aliasing: a pixel mixing surfaces, or
-    surface and background, at an edge; the Position pass is a pixel mean, so a
-    half-covered pixel's position is pulled towards the origin), and it catches
-    Cycles' denoising depth adding path length through specular bounces
-    (mirrors, glass: part of "never reproject specular", Sec. 3.2.1).
+    Position is the hit of sample 0 alone (module docstring), the Denoising
+    Depth the mean over the pixel's samples: a pixel mixing two surfaces, or a
+    surface and the background, at an edge has a mean depth between them while
+    its position lies on one (the thesis' Sec. 3.2.2 depth test against
+    aliasing), and Cycles' Denoising Depth adds path length through specular
+    bounces (mirrors, glass: part of "never reproject specular", Sec. 3.2.1).
+    On one slanted surface the two differ too, by the depth change between
+    sample 0's sub-pixel offset and the pixel mean: ``slack = pixels * s *
+    tan(theta)`` (:func:`_slant_slack`), with ``s`` the pixel's footprint and
+    theta the incidence from the pixel's normal; without normals the slack is
+    0.
 
     pos (N, 3), depth (N,) the depth pass, bg (N,) bool (exempt), camera the
-    previous frame's -> (N,) bool, True = rejected.
+    previous frame's, normal (N, 3) camera-space mean normals or None, pshape
+    the previous frame's (H, W) -> (N,) bool, True = rejected.
     """
     dist_p = np.linalg.norm(pos - camera.position[None, :], axis=1)
     zdep = -(pos @ camera.view[2, :3] + camera.view[2, 3])
-    tol = tolerance * dist_p
+    tol = tolerance * dist_p + _slant_slack(pos, normal, camera, pshape, pixels)
     consistent = (np.abs(dist_p - depth) <= tol) | (np.abs(zdep - depth) <= tol)
     return ~bg & ~consistent
+
+
+#: Blender camera space <-> Cycles camera space (the Denoising Normal's): z flipped
+_CYCLES_FLIP = np.diag([1.0, 1.0, -1.0])
+
+#: incidence cosine below which tan(theta) is not grown further (tan <= ~20: 87 degrees)
+_MIN_COS = 0.05
+
+
+def _slant_slack(pos: np.ndarray, normal: np.ndarray | None, camera: Camera, pshape: tuple,
+                 pixels: float) -> np.ndarray:
+    """(N,) depth slack ``pixels * s * tan(theta)``: how much a surface's ray
+    length changes over ``pixels`` footprints ``s`` (:meth:`Camera.footprint`)
+    when the ray meets it at incidence theta.  First order in the offset; theta
+    from ``normal`` (Cycles' camera space, +Z forward: z is flipped into
+    Blender's) against the ray to ``pos``, cos clamped at :data:`_MIN_COS`.  0
+    where the normal is unknown or too short to say (|n| < 0.5: normals of
+    several surfaces averaged), so those pixels keep the relative test alone."""
+    if normal is None or pixels <= 0:
+        return np.zeros(pos.shape[0])
+    p_cam = pos @ camera.view[:3, :3].T + camera.view[:3, 3][None, :]
+    n_b = np.asarray(normal, np.float64) @ _CYCLES_FLIP
+    nn = np.linalg.norm(n_b, axis=1)
+    pn = np.linalg.norm(p_cam, axis=1)
+    usable = np.isfinite(nn) & np.isfinite(pn) & (nn >= 0.5) & (pn > 0)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        cos = np.abs(np.sum(n_b * p_cam, axis=1)) / np.where(usable, nn * pn, 1.0)
+    cos = np.clip(np.where(usable & np.isfinite(cos), cos, 1.0), _MIN_COS, 1.0)
+    tan = np.sqrt(np.maximum(1.0 - cos * cos, 0.0)) / cos
+    fp = camera.footprint(camera.clip(pos), pshape[0], pshape[1])
+    slack = pixels * np.where(np.isfinite(fp), fp, 0.0) * tan
+    return np.where(usable, slack, 0.0)
 
 
 def _clip_coordinates(pos: np.ndarray, bg: np.ndarray, idx: np.ndarray, pcam: Camera, ccam: Camera,
@@ -728,30 +825,64 @@ def _object_changed(prev: Buffers, cur: Buffers, idx: np.ndarray, tgt: np.ndarra
     return ~same
 
 
-#: Cycles' light passes holding the view-dependent radiance (direct + indirect)
+#: Cycles' light passes holding the view-dependent light (direct + indirect)
 _LIGHT_PASSES = ("glossy", "transmission")
 
 
-def _light_pass(prev: Buffers, cur: Buffers, name: str, idx: np.ndarray, tgt: np.ndarray):
-    """Means of light pass ``name`` at the sources (N, C) and at their targets
-    in the current frame (N, C'; non-finite -> +inf)."""
-    sp = prev.features[name]
-    stc = cur.features[name]
-    s_p = sp.mean.reshape(-1, sp.mean.shape[-1])[idx]
-    s_t = stc.mean.reshape(-1, stc.mean.shape[-1])[tgt]
-    return s_p, np.where(np.isfinite(s_t), s_t, np.inf)
+def _radiance(buf: Buffers, name: str, flat: np.ndarray, use_color: bool):
+    """Mean (N, C) and variance of the mean (N, C) of light pass ``name``'s
+    *radiance* at flat pixels ``flat``: Cycles divides its light passes by
+    their colour pass (module docstring), so the radiance is ``colour x
+    light`` (``<name>_color``, where ``use_color``); the product of the pooled
+    means (exact for one render; over several renders it ignores the
+    covariance of colour and light between renders, second order for a pixel
+    on one surface).  Its variance by the delta method, ``c^2 v_L + L^2 v_c``,
+    an exact-zero factor contributing 0.  Without colour: the light pass
+    itself (overstates the radiance by 1 / colour: conservative).  Non-finite
+    means -> +inf."""
+    st = buf.features[name]
+    c = st.mean.shape[-1]
+    light = st.mean.reshape(-1, c)[flat]
+    v_l = _var_of_mean(buf, st, flat)
+    if use_color:
+        cs = buf.features[name + "_color"]
+        col = cs.mean.reshape(-1, cs.mean.shape[-1])[flat]
+        if col.shape[1] != c:
+            col = np.broadcast_to(col[:, :1], light.shape)
+        v_c = _var_of_mean(buf, cs, flat)
+        if v_c.shape[1] != c:
+            v_c = np.broadcast_to(v_c[:, :1], light.shape)
+        with np.errstate(invalid="ignore", over="ignore"):
+            mean = col * light
+            var = np.where(col == 0.0, 0.0, col * col * v_l) + np.where(light == 0.0, 0.0, light * light * v_c)
+    else:
+        mean, var = light, v_l
+    ok = np.isfinite(mean)
+    return np.where(ok, mean, np.inf), np.where(ok & ~np.isnan(var), var, np.inf)
+
+
+def _light_pass(prev: Buffers, cur: Buffers, name: str, idx: np.ndarray, tgt: np.ndarray, have: dict):
+    """Radiance of light pass ``name`` (:func:`_radiance`) at the sources and
+    at their targets in the current frame: ``(s_p, v_p, s_t, v_t)``, each (N, C).
+    The colour pass is used only when both frames have it, so both sides are
+    in the same units."""
+    use_color = bool(have.get(name + "_color"))
+    s_p, v_p = _radiance(prev, name, idx, use_color)
+    s_t, v_t = _radiance(cur, name, tgt, use_color)
+    return s_p, v_p, s_t, v_t
 
 
 def _specular_share(prev: Buffers, cur: Buffers, idx: np.ndarray, tgt: np.ndarray, have: dict) -> np.ndarray:
     """Share of view-dependent light, for ``specular``: ``lum(glossy +
-    transmission) / lum(combined)``, the larger of the previous pixel's and the
-    target's in the current frame.
+    transmission radiance) / lum(combined)``, the larger of the previous
+    pixel's and the target's in the current frame.
 
     The thesis never reprojects specular (alpha < 0.01) or refractive
     materials (Sec. 3.2.1); Cycles has no roughness pass, so "mostly specular
-    or refractive" is read from the light passes (missing passes count as 0).
-    idx, tgt (N,) -> (N,) float64 >= 0; +inf where there is view-dependent
-    light but no positive combined luminance, or the ratio is undefined.
+    or refractive" is read from the radiance passes (:func:`_radiance`; missing
+    passes count as 0).  idx, tgt (N,) -> (N,) float64 >= 0; +inf where there
+    is view-dependent light but no positive combined luminance, or the ratio
+    is undefined.
     """
     m = idx.size
     lum_p = np.maximum(luminance(prev.color.mean.reshape(-1, 3)[idx]), 0.0)
@@ -762,9 +893,10 @@ def _specular_share(prev: Buffers, cur: Buffers, idx: np.ndarray, tgt: np.ndarra
     for pname in _LIGHT_PASSES:
         if not have[pname]:
             continue
-        s_p, s_t = _light_pass(prev, cur, pname, idx, tgt)
-        vd_p += np.maximum(luminance(s_p[:, :3]) if s_p.shape[1] >= 3 else s_p[:, 0], 0.0)
-        vd_t += np.maximum(luminance(s_t[:, :3]) if s_t.shape[1] >= 3 else s_t[:, 0], 0.0)
+        s_p, _, s_t, _ = _light_pass(prev, cur, pname, idx, tgt, have)
+        with np.errstate(invalid="ignore"):
+            vd_p += np.maximum(luminance(s_p[:, :3]) if s_p.shape[1] >= 3 else s_p[:, 0], 0.0)
+            vd_t += np.maximum(luminance(s_t[:, :3]) if s_t.shape[1] >= 3 else s_t[:, 0], 0.0)
     with np.errstate(divide="ignore", invalid="ignore"):
         share_p = np.where(vd_p > 0, vd_p / np.where(lum_p > 0, lum_p, 0.0), 0.0)
         share_t = np.where(vd_t > 0, vd_t / np.where(lum_t > 0, lum_t, 0.0), 0.0)
@@ -774,14 +906,20 @@ def _specular_share(prev: Buffers, cur: Buffers, idx: np.ndarray, tgt: np.ndarra
 
 
 def _view_dependence_error(prev: Buffers, cur: Buffers, idx: np.ndarray, tgt: np.ndarray, have: dict,
-                           confidence: float, assume_diffuse: bool) -> np.ndarray:
+                           confidence: float, assume_diffuse: bool, pooled: dict | None = None,
+                           max_error: float = 0.0) -> np.ndarray:
     """Upper bound (N,) of Eq. 15's view-dependence error for ``view_dependence``
     (validation (c) of Sec. 3.2; Sec. 3.2.1), when the camera moved.
 
-    Glossy and transmission are bounded separately by :func:`_bound` and added
-    (triangle inequality), each the maximum over its channels.  A missing
-    light pass makes the bound +inf unless ``assume_diffuse`` (then it counts
-    as 0).  idx, tgt (N,) -> (N,) float64 in [0, inf].
+    Glossy and transmission radiance (:func:`_radiance`) are bounded
+    separately by :func:`_bound` and added (triangle inequality), each the
+    maximum over its channels.  With ``pooled`` (:func:`_pooled_light`) the
+    bound is taken on the window-pooled radiances, and a pixel whose own
+    radiance changed beyond its noise (``|S_t - S_p| > max_error + z sqrt(v_p
+    + v_t)`` in a channel: a highlight moving inside the window, which pooling
+    would average away) gets +inf.  A missing light pass makes the bound +inf
+    unless ``assume_diffuse`` (then it counts as 0).  idx, tgt (N,) -> (N,)
+    float64 in [0, inf].
     """
     eps = np.zeros(idx.size)
     complete = True
@@ -789,13 +927,141 @@ def _view_dependence_error(prev: Buffers, cur: Buffers, idx: np.ndarray, tgt: np
         if not have[pname]:
             complete = False
             continue
-        s_p, s_t = _light_pass(prev, cur, pname, idx, tgt)
-        v_p = _var_of_mean(prev, prev.features[pname], idx)
-        v_t = _var_of_mean(cur, cur.features[pname], tgt)
-        eps = eps + _bound(s_p, v_p, s_t, v_t, confidence).max(axis=1)
+        s_p, v_p, s_t, v_t = _light_pass(prev, cur, pname, idx, tgt, have)
+        if pooled and pname in pooled:
+            mp, vp, mt, vt = pooled[pname]
+            with np.errstate(invalid="ignore", over="ignore"):
+                moved = ~(np.abs(s_t - s_p) <= max_error + confidence * np.sqrt(v_p + v_t))
+            b = _bound(mp[idx], vp[idx], mt[tgt], vt[tgt], confidence).max(axis=1)
+            eps = eps + np.where(moved.any(axis=1), np.inf, b)
+        else:
+            eps = eps + _bound(s_p, v_p, s_t, v_t, confidence).max(axis=1)
     if not complete and not assume_diffuse:
         return np.full(idx.size, np.inf)
     return eps
+
+
+def _change_below_noise(prev: Buffers, cur: Buffers, idx: np.ndarray, tgt: np.ndarray,
+                        pooled: dict) -> np.ndarray:
+    """(N,) bool: the view-dependent change is estimated below the noise of the
+    means the merge pools (``noise_limited``, an addition to Eq. 15).
+
+    Merging m reprojected samples whose mean is off by delta into n own
+    samples trades a bias ``m/(m+n) delta`` for the variance ``sigma^2/n ->
+    sigma^2/(n+m)``; the squared error falls whenever ``delta^2 < v_p + v_t``,
+    the variances of the two Combined means.  delta per channel is estimated
+    from the window-pooled radiances (:func:`_pooled_light`), unbiased in the
+    square: ``max(0, dS^2 - var(dS))``, glossy and transmission added; every
+    channel must pass, with finite variances (unknown variance: False).
+    """
+    delta = np.zeros((idx.size, 3))
+    for mp, vp, mt, vt in pooled.values():
+        with np.errstate(invalid="ignore", over="ignore"):
+            d = mt[tgt] - mp[idx]
+            d2 = np.maximum(d * d - (vp[idx] + vt[tgt]), 0.0)
+        if d2.shape[1] != 3:
+            d2 = np.broadcast_to(d2[:, :1], (idx.size, 3))
+        delta = delta + np.sqrt(d2)
+    v = _var_of_mean(prev, prev.color, idx) + _var_of_mean(cur, cur.color, tgt)
+    with np.errstate(invalid="ignore"):
+        ok = np.isfinite(v) & np.isfinite(delta) & (delta * delta <= v)
+    return ok.all(axis=1)
+
+
+def _pooled_light(prev: Buffers, prev_camera: Camera, cur: Buffers, cur_camera: Camera, have: dict,
+                  radius: int) -> dict:
+    """name -> (mean_prev, var_prev, mean_cur, var_cur), flat (H*W, C): each
+    frame's light-pass radiance (:func:`_radiance`) pooled over (2 radius + 1)^2
+    windows by :func:`_guided_pool` (all passes of a frame in one sweep).
+    Empty for radius 0; a pass that is exactly 0 with zero variance in both
+    frames (no transmission in the scene) is passed through unpooled."""
+    if radius <= 0:
+        return {}
+    names = [n for n in _LIGHT_PASSES if have[n]]
+    per_frame = []
+    for buf in (prev, cur):
+        flat = np.arange(buf.n.size)
+        per_frame.append({n: _radiance(buf, n, flat, bool(have.get(n + "_color"))) for n in names})
+    trivial = {n: all(not np.any(f[n][0]) and not np.any(f[n][1]) for f in per_frame) for n in names}
+    pooled = []
+    for (buf, cam), rad in zip(((prev, prev_camera), (cur, cur_camera)), per_frame):
+        todo = [n for n in names if not trivial[n]]
+        if todo:
+            m = np.concatenate([rad[n][0] for n in todo], axis=1)
+            v = np.concatenate([rad[n][1] for n in todo], axis=1)
+            pm, pv = _guided_pool(buf, cam, m, v, radius)
+        out, c0 = {}, 0
+        for n in names:
+            if trivial[n]:
+                out[n] = rad[n]
+                continue
+            c = rad[n][0].shape[1]
+            out[n] = (pm[:, c0:c0 + c], pv[:, c0:c0 + c])
+            c0 += c
+        pooled.append(out)
+    return {n: pooled[0][n] + pooled[1][n] for n in names}
+
+
+#: neighbours pooled with a pixel must share its surface: normals within ~25 degrees, and
+#: within this share of the camera distance of the pixel's tangent plane (log depth without normals)
+_POOL_NORMAL_DOT = 0.9
+_POOL_PLANE = 0.02
+
+
+def _guided_pool(buf: Buffers, camera: Camera, mean: np.ndarray, var: np.ndarray, radius: int):
+    """Mean and variance of the mean of ``mean`` (H*W, C) over the window
+    pixels on the pixel's own surface: same object index, normal within
+    :data:`_POOL_NORMAL_DOT`, position within :data:`_POOL_PLANE` of the
+    camera distance from the pixel's tangent plane (a slanted plane's
+    neighbours stay in; a parallel surface behind does not), each guide used
+    where the buffer has it; finite values only.  Pixels' noise is
+    independent, so ``var = sum v_q / m^2`` for the m pooled pixels.  A pixel
+    whose own value is not finite stays +inf (it is never pooled from
+    neighbours alone)."""
+    h, w = buf.shape
+    c = mean.shape[1]
+    m3 = mean.reshape(h, w, c)
+    v3 = var.reshape(h, w, c)
+    fin = np.all(np.isfinite(m3), axis=2) & np.all(np.isfinite(v3), axis=2)
+    feats = buf.features
+    oid = feats["object_index"].mean[..., 0] if "object_index" in feats else None
+    nrm = None
+    if "normal" in feats:                          # camera space (Cycles) -> world
+        nrm = feats["normal"].mean @ _CYCLES_FLIP @ camera.view[:3, :3]
+        nn = np.linalg.norm(nrm, axis=2, keepdims=True)
+        nrm = np.where(nn > 0, nrm / np.where(nn > 0, nn, 1.0), 0.0)
+    pos = feats["position"].mean
+    lim = _POOL_PLANE * np.linalg.norm(pos - camera.position[None, None, :], axis=2)
+    ld = None
+    if nrm is None and "depth" in feats:
+        d = feats["depth"].mean[..., 0]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            ld = np.where(d > 0, np.log(np.where(d > 0, d, 1.0)), np.nan)
+    both = np.concatenate([np.where(fin[..., None], m3, 0.0), np.where(fin[..., None], v3, 0.0)], axis=2)
+    acc = np.zeros((h, w, 2 * c))
+    cnt = np.zeros((h, w))
+    for dy in range(-radius, radius + 1):
+        for dx in range(-radius, radius + 1):
+            ys, yd = (slice(dy, h), slice(0, h - dy)) if dy >= 0 else (slice(0, h + dy), slice(-dy, h))
+            xs, xd = (slice(dx, w), slice(0, w - dx)) if dx >= 0 else (slice(0, w + dx), slice(-dx, w))
+            ok = fin[ys, xs] & fin[yd, xd]
+            if dy or dx:                    # a pixel always pools itself
+                if oid is not None:
+                    ok &= np.abs(oid[ys, xs] - oid[yd, xd]) <= 1e-3
+                with np.errstate(invalid="ignore"):
+                    if nrm is not None:
+                        nd = nrm[yd, xd]
+                        ok &= np.einsum("ijk,ijk->ij", nrm[ys, xs], nd) >= _POOL_NORMAL_DOT
+                        off = np.abs(np.einsum("ijk,ijk->ij", nd, pos[ys, xs] - pos[yd, xd]))
+                        ok &= off <= lim[yd, xd]
+                    elif ld is not None:
+                        ok &= np.abs(ld[ys, xs] - ld[yd, xd]) <= _POOL_PLANE
+            acc[yd, xd] += both[ys, xs] * ok[..., None]
+            cnt[yd, xd] += ok
+    safe = np.where(cnt > 0, cnt, 1.0)[..., None]
+    pm = np.where(fin[..., None], acc[..., :c] / safe, np.inf)
+    pv = np.where(fin[..., None], acc[..., c:] / (safe * safe), np.inf)
+    return pm.reshape(-1, c), pv.reshape(-1, c)
 
 
 def _radiance_changed(prev: Buffers, cur: Buffers, idx: np.ndarray, tgt: np.ndarray, sigma: float,
@@ -892,7 +1158,8 @@ def _scatter(prev: Buffers, out: Buffers, src: np.ndarray, tgt: np.ndarray, size
         bg = is_background(pos, d[:, 0])
         shift = np.where(bg | ~np.isfinite(shift), 0.0, shift)
         transforms["depth"] = ("shift", shift)
-    rot = ccam.rotation @ pcam.rotation.T
+    # R_t R_{t-1}^T in Blender's camera space, conjugated by the z flip into Cycles' (+Z forward)
+    rot = _CYCLES_FLIP @ (ccam.rotation @ pcam.rotation.T) @ _CYCLES_FLIP
     if not np.allclose(rot, np.eye(3), atol=1e-14):
         transforms["normal"] = ("rotate", rot)
 

@@ -1097,7 +1097,8 @@ class FramesJob:
         self.temporal, self.job_kw = temporal, job_kw
         from ..core import reproject, temporal as temporal_mod
         from ..core.method import params_from_dict
-        self.reproject_params = params_from_dict(reproject.Params, reproject_params)
+        self.reproject_params = reproject.resolve_noise_limited(
+            params_from_dict(reproject.Params, reproject_params), options.method)
         self.temporal_params = params_from_dict(temporal_mod.Params, temporal_params)
         self.summaries: list = []
         self.job: RenderJob | None = None
@@ -1235,4 +1236,5 @@ class FramesJob:
 
 
 #: passes the reprojection needs (world position, specular share, object ids)
-REPROJECT_PASSES = ("position", "glossy", "transmission", "object_index", "normal", "depth")
+REPROJECT_PASSES = ("position", "glossy", "transmission", "glossy_color", "transmission_color", "object_index",
+                    "normal", "depth")
