@@ -368,15 +368,24 @@ def _render_frames(args, scene, layers, opts, cluster=None) -> int:
                              view_layers=layers, compositor=not args.no_compositor, **common)
         job = farm_job.FrameRangeJob(make, frames, lambda f: frame_path(out, f), args.temporal,
                                      method=opts.method, **flags)
-    interrupted = False
-    try:
-        for step in job.steps():
-            if isinstance(step, dict):  # a frame finished
-                _report(step, args.json)
-            elif not args.quiet and step.stage != "render":
-                print(f"[cycles-adaptive] {100 * step.fraction:5.1f}% {step.message}", flush=True)
-    except KeyboardInterrupt:
-        interrupted = True
+    steps = job.steps()
+    with _SigintFlag() as flag:  # as for one frame: Blender swallows a KeyboardInterrupt in its render
+        try:
+            for step in steps:
+                if isinstance(step, dict):  # a frame finished
+                    _report(step, args.json)
+                elif not args.quiet and step.stage != "render":
+                    print(f"[cycles-adaptive] {100 * step.fraction:5.1f}% {step.message}", flush=True)
+                if flag.set:  # Ctrl-C during a render: stop at its end, through the range's interrupt path
+                    steps.throw(KeyboardInterrupt)
+        except KeyboardInterrupt:
+            flag.set = True
+        finally:
+            steps.close()
+    interrupted = flag.set
+    if interrupted:
+        print("[cycles-adaptive] interrupted: writing the frame in progress as a partial result",
+              file=sys.stderr, flush=True)
     summary = job.finish(partial=interrupted)
     print(f"[cycles-adaptive] {summary['exit_summary']}", flush=True)
     _report(summary, args.json)

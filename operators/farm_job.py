@@ -230,6 +230,8 @@ def drive(runs, make_job, codes: dict, errors: dict):
                         codes[int(step["frame"])] = EXIT_OK
                         pending.remove(int(step["frame"]))
                     yield step
+            except GeneratorExit:      # the range's consumer closed it: not a frame failure
+                raise
             except BaseException as exc:
                 frame = pending[0] if pending else run.frames[-1]
                 codes[frame] = error_code(exc)
@@ -313,12 +315,16 @@ class FrameRangeJob:
         if skipped:
             yield Progress("plan", 0, 0.0, skipped_message(skipped))
         n = len(self.frames)
-        for step in drive(self.runs, self._make, self.codes, self.errors):
+        runs = drive(self.runs, self._make, self.codes, self.errors)
+        for step in runs:
             if isinstance(step, dict):
                 self.summaries.append(step)
             else:  # the job's fraction of its own frames -> of the range
                 step.fraction = (self._before + step.fraction * len(self.job.frames)) / n
-            yield step
+            try:
+                yield step
+            except KeyboardInterrupt:  # thrown in by the consumer (Ctrl-C): drive marks the frame, re-raises
+                runs.throw(KeyboardInterrupt)
         for f, msg in sorted(self.errors.items()):
             yield Progress("plan", 0, 1.0, f"frame {f} failed: {msg}")
 

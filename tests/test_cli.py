@@ -217,6 +217,33 @@ def test_ctrl_c_mid_render_stops_at_its_end_and_writes_a_readable_partial_exr(tm
     assert passes["Samples"].sum() == pytest.approx(res["spp_mean"] * 64 * 48)
 
 
+def test_ctrl_c_in_a_frame_range_stops_at_the_render_and_keeps_the_finished_frames(tmp_path):
+    """SIGINT during the second frame's Cycles render of a range: that frame is written
+    as a partial result, the first stays complete, the third is not started, exit 130 (Blender
+    would swallow a KeyboardInterrupt raised in its render and go on)."""
+    blend = os.path.join(ROOT, "sample_blends", "animated.blend")
+    out = str(tmp_path / "f_####.exr")
+    p = _start(["render", blend, "--frames", "1-3", "--out", out, "--method", "var", "--spp", "1000",
+                "--initial-spp", "64", "--subsets", "8", "--task-cost", "64", "--resolution-percentage", "25",
+                "--iterations", "1", "--no-preview", "--json"])
+    seen = _wait_for(p, '"frame": 1,')                    # frame 1 written
+    seen += _wait_for(p, "initial pass: subset 1/8")       # frame 2's subset 2 is rendering now
+    p.send_signal(signal.SIGINT)
+    rest, stderr = p.communicate(timeout=600)
+    stdout = "".join(seen) + rest
+    assert p.returncode == 130, stderr[-2000:]
+    assert "interrupted" in stderr
+    frames = [json.loads(ln) for ln in stdout.splitlines() if ln.startswith("{") and '"frame"' in ln]
+    by_frame = {x["frame"]: x for x in frames}
+    assert by_frame[1]["partial"] is False
+    summary = _last_json(stdout)
+    assert summary["exit_codes"] == {"1": 0, "2": 130} and summary["exit_code"] == 130
+    assert summary["outs"] == [str(tmp_path / "f_0001.exr"), str(tmp_path / "f_0002.exr")]
+    assert not os.path.exists(str(tmp_path / "f_0003.exr"))
+    passes = _exr_arrays(str(tmp_path / "f_0002.exr"))     # the partial frame: readable, < 64 spp
+    assert np.isfinite(passes["Combined"]).all() and 0 < passes["Samples"].mean() < 64
+
+
 def test_max_seconds_bounds_the_wall_time(tmp_path):
     blend = _blend(tmp_path, width=48, height=32)
     limit = 2.0
