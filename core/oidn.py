@@ -22,8 +22,16 @@ The samples of each pixel are split into two disjoint halves A and B (whole
 sample groups, ``core.buffers.Half``), and D, D(A), D(B) are the denoised
 full mean and halves.  Two terms, per pixel and channel:
 
-* variance ``c |D(A) - D(B)|^2`` with ``c = n_A n_B / n^2`` (1/4 for equal
-  halves; :func:`variance_constant` derives it);
+* variance ``s c |D(A) - D(B)|^2`` with ``c = n_A n_B / n^2`` (1/4 for
+  equal halves; :func:`variance_constant` derives it for i.i.d. samples)
+  and ``s`` the stratification scale measured on the run's own halves
+  (:func:`stratification_scale`): Cycles' sequence makes the full mean of
+  ``n`` consecutive samples converge faster than the halves, whole groups
+  that are not adjacent, so ``c |x_A - x_B|^2`` over-states the variance
+  of the mean; ``s`` is the ratio of the variance of the mean calibrated
+  for the stratification (core/variance.py, exponent measured on the
+  initial pass) to it, carried over to the denoised halves as for a
+  linear denoiser;
 * bias ``w |D - (n_A D(A) + n_B D(B)) / n|^2``: the weighted mean of the
   halves equals D exactly for a linear denoiser, so this term is what OIDN's
   nonlinearity adds: the change of its output with the sample count, which
@@ -32,13 +40,16 @@ full mean and halves.  Two terms, per pixel and channel:
   is twice D's and the difference is D's own bias: ``w = 1``.
 
 Both are single noisy realisations per pixel, so they are pooled over a
-``(2 r + 1)^2`` box (``r = 3``: 7x7) before any use.  Without stored halves
+``(2 r + 1)^2`` box (``r = 3``: 7x7) before any use, in the metric's
+relative form (``t / (D^2 + 0.01)``): pooled in absolute units a bright
+pixel's error lent to dim neighbours counted 1.5x in the relMSE estimate.
+Without stored halves
 (buffers read from a file, :func:`denoise` on plain arrays) the halves are
 made by recorruption (Pang et al. 2021): ``A = x + s z``, ``B = x - s z``
 with ``s^2`` the variance of the mean and ``z`` standard normal; for Gaussian
 noise A and B are then independent with variance ``2 s^2`` each, like two real
-halves.  Measurements (correlation with the true error, calibration):
-docs/notes/oidn.md.
+halves (i.i.d.: no stratification scale).  Measurements (correlation with the
+true error, calibration): docs/notes/oidn.md.
 
 Sampling (:func:`sample_map`)
 -----------------------------
@@ -376,7 +387,8 @@ def _pyoidn_filter(c, a, nrm, hdr, prefilter, quality) -> np.ndarray:
 # ======================================================= dual-buffer error
 def variance_constant(n_a, n_b, rate: float = 1.0) -> np.ndarray:
     """``c`` with ``Var[D(x)] = c E|D(A) - D(B)|^2`` for disjoint halves of
-    ``n_a`` and ``n_b`` samples of the full mean ``x`` (``n = n_a + n_b``).
+    ``n_a`` and ``n_b`` i.i.d. samples of the full mean ``x`` (``n = n_a +
+    n_b``).
 
     Derivation: a denoiser whose output variance at ``m`` samples is ``V
     m^-q`` (``q = rate``; ``q = 1`` for any linear denoiser, whose output is a
@@ -389,10 +401,9 @@ def variance_constant(n_a, n_b, rate: float = 1.0) -> np.ndarray:
 
     Equal halves: ``2^-q / 2``, 1/4 for ``q = 1`` (each half has variance
     ``2 sigma^2`` against ``sigma^2`` for their mean, and the difference of
-    two independent halves ``4 sigma^2``).  0 where a half is empty.  With
-    the real OIDN the 1/4 term is 0.71-0.75 of the true variance on a
-    synthetic Monte Carlo (its blur adapts to the noise: q < 1;
-    docs/notes/oidn.md); the bias term covers part of the rest.
+    two independent halves ``4 sigma^2``).  0 where a half is empty.
+    Cycles' samples are not i.i.d.: :func:`stratification_scale` measures the
+    factor the run's own halves need on top of this constant.
     """
     n_a = np.asarray(n_a, np.float64)
     n_b = np.asarray(n_b, np.float64)
@@ -402,22 +413,83 @@ def variance_constant(n_a, n_b, rate: float = 1.0) -> np.ndarray:
     return np.where(ok, (sa + sb) ** -q / (sa ** -q + sb ** -q), 0.0)
 
 
-def dual_buffer_error(d, d_a, d_b, n_a, n_b, bias_weight: float = 1.0, radius: int = 3):
+#: stratification_scale is clipped to this range (a ratio of frame sums;
+#: beyond it the measurement is not trusted: 1 is i.i.d., and the sequence's
+#: exponent range of core/variance.py bounds the correction of 4 subsets to
+#: about 4^(1 - 3) = 1/16)
+SCALE_RANGE = (1.0 / 16.0, 2.0)
+
+
+def stratification_scale(var_of_mean, color_a, color_b, n_a, n_b, image) -> float:
+    """Factor ``s`` with ``Var[x] = s c E|x_A - x_B|^2`` for the run's sample
+    means (``c`` = :func:`variance_constant`, i.i.d.), measured on the frame.
+
+    Why: Cycles' sequence is stratified.  The full mean of ``n`` consecutive
+    samples has variance ``C n^-beta`` with ``beta > 1`` (core/variance.py),
+    but the halves are whole groups that do not form stratified blocks
+    (A = subsets 0 and 2 of the initial pass), so their difference sees the
+    larger variance of the groups: ``c |x_A - x_B|^2`` over-states ``Var[x]``
+    (on the sample scenes by 1.3-1.8x at 4 spp).  The variance of the mean
+    calibrated for the stratification (``Buffers.calibrated_variance``,
+    Eq. 2 of core/variance.py with the exponent measured on the initial
+    pass) is the expectation of ``Var[x]``; the ratio of the frame sums
+
+        s = sum_p,c w v_pc / sum_p,c w c_p |x_A - x_B|_pc^2,   w = 1 / (D^2 + 0.01)
+
+    (metric weights, ``D`` the denoised image) is what the halves' spread
+    must be scaled by to match it.  For a linear denoiser ``D = W x`` with
+    pixel noise independent between pixels, ``Var D = sum_j w_j^2 Var x_j``
+    and ``E|D(A) - D(B)|^2 = sum_j w_j^2 E|x_A - x_B|_j^2``, so the same
+    ``s`` carries over to the denoised halves where it is constant over the
+    filter's footprint.  i.i.d. samples: ``E s = 1``.  The sums are taken
+    per ``BLOCK`` x ``BLOCK`` tile (192 terms each) and ``s`` is the median
+    of the tiles' ratios: a firefly or highlight puts most of the frame's
+    variance in a few pixels (glossy: 30x the sample mean's true error),
+    which a single frame sum would follow.  ``var_of_mean``: (H, W, 3),
+    non-finite where unknown (left out).  Returns ``s`` clipped to
+    :data:`SCALE_RANGE`; 1.0 without data.
+    """
+    v = np.asarray(var_of_mean, np.float64)
+    d = np.asarray(color_a, np.float64) - np.asarray(color_b, np.float64)
+    img = np.asarray(image, np.float64)
+    c = variance_constant(n_a, n_b)[..., None]
+    ok = np.isfinite(v) & np.isfinite(d) & (c > 0)
+    w = 1.0 / (img * img + REL_EPS)
+    with np.errstate(invalid="ignore", over="ignore"):
+        num = _blocks(np.where(ok, w * v, 0.0).sum(axis=-1), BLOCK)
+        den = _blocks(np.where(ok, w * c * d * d, 0.0).sum(axis=-1), BLOCK)
+    use = (num > 0) & (den > 0) & np.isfinite(num) & np.isfinite(den)
+    if not use.any():
+        return 1.0
+    return float(np.clip(np.median(num[use] / den[use]), *SCALE_RANGE))
+
+
+def dual_buffer_error(d, d_a, d_b, n_a, n_b, bias_weight: float = 1.0, radius: int = 3,
+                      scale: float = 1.0):
     """The two terms of the module notes, each pooled over a ``(2 radius +
-    1)^2`` box (0: per pixel).
+    1)^2`` box (0: per pixel) in the metric's relative form: a term ``t_c``
+    is pooled as ``t_c / (d_c^2 + 0.01)`` and multiplied back by ``d_c^2 +
+    0.01``.  Pooling the absolute error lends a bright pixel's error to its
+    dim neighbours, where divided by their small values it counted 1.5x the
+    true relMSE on the sample scenes (docs/notes/oidn.md); pooled relative,
+    the mean relative error of the map is that of the unpooled terms.
 
     d, d_a, d_b : (H, W, 3) denoised full mean and halves; n_a, n_b : (H, W)
+    scale : factor on the variance constant (:func:`stratification_scale`;
+        1.0: i.i.d. samples)
     Returns (variance, bias), both (H, W, 3) float64, finite and >= 0.
     """
     n_a = np.asarray(n_a, np.float64)
     n_b = np.asarray(n_b, np.float64)
-    c = variance_constant(n_a, n_b)[..., None]
+    c = float(scale) * variance_constant(n_a, n_b)[..., None]
     n = np.where(n_a + n_b > 0, n_a + n_b, 1.0)[..., None]
     var = c * (d_a - d_b) ** 2
     mix = (n_a[..., None] * d_a + n_b[..., None] * d_b) / n
     split = ((n_a > 0) & (n_b > 0))[..., None]
     bias = np.where(split, float(bias_weight) * (d - mix) ** 2, 0.0)
-    return _pool(var, radius), _pool(bias, radius)
+    d = np.asarray(d, np.float64)
+    den = d * d + REL_EPS
+    return _pool(var / den, radius) * den, _pool(bias / den, radius) * den
 
 
 def relative_map(error3, image, radius: int = 0) -> np.ndarray:
@@ -457,10 +529,12 @@ def _aux(features: dict):
 
 
 def estimate(color, features, halves, n_a, n_b, params: Params | None = None,
-             denoiser=None) -> MethodResult:
+             denoiser=None, var_of_mean=None) -> MethodResult:
     """Denoise the full mean and both halves; image = D(full), error = the
-    pooled variance + bias terms averaged over RGB (absolute), ``fit`` an
-    :class:`OIDNFit` with the pooled relative error for the sampler.
+    pooled variance + bias terms as one absolute squared error per pixel,
+    ``e / mean_c (1 / (D_c^2 + 0.01))`` with ``e`` the pooled relative error
+    (so ``core.metrics.relative_error_map(image, error)`` is ``e`` exactly),
+    ``fit`` an :class:`OIDNFit` with ``e`` for the sampler.
 
     color : (H, W, 3) full mean; features : name -> (H, W, C) full means
     halves : ((color_A, features_A), (color_B, features_B)) or None (error
@@ -471,6 +545,10 @@ def estimate(color, features, halves, n_a, n_b, params: Params | None = None,
     n_a, n_b : (H, W) samples in each half (scalars broadcast)
     denoiser : ``f(color, albedo, normal) -> (H, W, 3)``; default OIDN with
         ``params`` (tests pass a linear filter to check the constant)
+    var_of_mean : (H, W, 3) variance of the full mean calibrated for the
+        sequence's stratification (``Buffers.calibrated_variance``): the
+        variance constant is scaled by :func:`stratification_scale`; None:
+        i.i.d. halves (recorrupted ones), no scale
     """
     p = _params(params)
     t0 = time.perf_counter()
@@ -489,14 +567,18 @@ def estimate(color, features, halves, n_a, n_b, params: Params | None = None,
         d_b = np.asarray(denoiser(cb, *_aux(fb)), np.float64)
         calls = 3
         shape = d.shape[:2]
-        var, bias = dual_buffer_error(d, d_a, d_b, np.broadcast_to(n_a, shape),
-                                      np.broadcast_to(n_b, shape), p.bias_weight, p.pool_radius)
+        na, nb = np.broadcast_to(n_a, shape), np.broadcast_to(n_b, shape)
+        scale = 1.0 if var_of_mean is None else stratification_scale(var_of_mean, ca, cb, na, nb, d)
+        var, bias = dual_buffer_error(d, d_a, d_b, na, nb, p.bias_weight, p.pool_radius, scale)
         kind = "split"
     err3 = var + bias
     rel = relative_map(err3, d)
     seconds = time.perf_counter() - t0
     info = {"oidn_calls": calls, "oidn_seconds": seconds, "estimated_relmse": float(rel.mean())}
-    return MethodResult(d, err3.mean(axis=-1), info, None, OIDNFit(rel, var, bias, kind))
+    if halves is not None:
+        info["variance_scale"] = scale
+    weight = (1.0 / (d * d + REL_EPS)).mean(axis=-1)  # > 0: d finite, REL_EPS > 0
+    return MethodResult(d, rel / weight, info, None, OIDNFit(rel, var, bias, kind))
 
 
 def reconstruct(buf: Buffers, params: Params | None = None) -> MethodResult:
@@ -514,7 +596,8 @@ def reconstruct(buf: Buffers, params: Params | None = None) -> MethodResult:
     halves = buf.halves()
     if halves is not None and np.any((halves[0][0] > 0) & (halves[1][0] > 0)):
         (na, ca, fa), (nb, cb, fb) = halves
-        return estimate(buf.color.mean, feats, ((ca, fa), (cb, fb)), na, nb, p)
+        return estimate(buf.color.mean, feats, ((ca, fa), (cb, fb)), na, nb, p,
+                        var_of_mean=buf.calibrated_variance())
     fvar = {k: buf.feature_variance(k) for k in feats}
     return _recorrupted(buf.color.mean, buf.variance_of_mean(), feats, fvar, p)
 

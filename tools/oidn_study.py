@@ -13,6 +13,8 @@ again.  Subcommands (from the repository root):
         --oracle --variants '[{}, {"allocation": "topup"}]'    # oidn vs uniform + OIDN, AdaptiveRun
     .venv/bin/python tools/oidn_study.py mc                     # constant + bias term, real OIDN
     .venv/bin/python tools/oidn_study.py cost --size 512        # s/MP: pyoidn vs Cycles' own OIDN
+    .venv/bin/python tools/oidn_study.py calib --seeds 0 --spp 4,8,16 --reps 8
+        # the estimate's terms against Var[D] and MSE over disjoint realisations
 
 ``--data`` (default out/oidn_study) holds the renders and results; ``--refs``
 (default /work/refs) the 1024-spp references (bench/references.py names).
@@ -326,10 +328,74 @@ def exp_cost(args):
         print(f"{k}: {med[k]:.3f} s = {med[k] / mp:.2f} s/MP, {med[k] / cyc:.2f}x Cycles' OIDN")
 
 
+def best_ref(scene):
+    """The reference of ``scene`` with the most samples in ``--refs``."""
+    import glob
+    found = glob.glob(f"{ARGS.refs}/{scene}.f0001.r100.s*.exr")
+    return read_reference(max(found, key=lambda p: int(p.rsplit(".s", 1)[1].split(".")[0])))[..., :3]
+
+
+def exp_calib(args):
+    """Calibration of the dual-buffer estimate over realisations: the stored
+    one-sample renders give ``128 / n`` disjoint blocks of ``n`` consecutive
+    samples (at most ``--reps``), each split as the loop's initial pass (4
+    groups, A = 0 and 2).  Per scene and n (metric-weighted frame means):
+    MSE and Var[D] over the realisations, the variance term with the i.i.d.
+    constant and with the measured stratification scale (vs Var[D]), the
+    bias term, the whole estimate pooled relative (the implementation) and
+    pooled absolute (before), each over MSE, and for the sample means
+    ``c |x_A - x_B|^2 / Var[x]`` (the stratification's effect)."""
+    from cycles_adaptive.core.buffers import Buffers
+    from cycles_adaptive.core.metrics import REL_EPS
+    from cycles_adaptive.core.variance import stratification_exponent
+    for scene in args.scenes:
+        r = best_ref(scene)
+        w = 1.0 / (r * r + REL_EPS)
+        for seed in args.seeds:
+            s = load(scene, seed)
+            for n in [int(x) for x in args.spp]:
+                reps, g = min(args.reps, s["color"].shape[0] // n), n // 4
+                ds, var_iid, var_s, bias, rel_pool, abs_pool, xs, half2 = ([] for _ in range(8))
+                for k in range(reps):
+                    o = k * n
+                    full = mean_of(s, slice(o, o + n))
+                    a = mean_of(s, np.r_[o:o + g, o + 2 * g:o + 3 * g])
+                    b = mean_of(s, np.r_[o + g:o + 2 * g, o + 3 * g:o + 4 * g])
+                    res = oidn.estimate(full["color"], full, ((a["color"], a), (b["color"], b)), n / 2, n / 2,
+                                        oidn.Params(pool_radius=0))
+                    d = res.image
+                    ds.append(d)
+                    var_iid.append((res.fit.variance * w).mean())
+                    bias.append((res.fit.bias * w).mean())
+                    xs.append(full["color"])
+                    half2.append(((a["color"] - b["color"]) ** 2 / 4 * w).mean())
+                    # the scale as reconstruct measures it, from the subsets' calibrated variance
+                    subs = [mean_of(s, slice(o + i * g, o + (i + 1) * g)) for i in range(4)]
+                    buf = Buffers.from_subsets([u["color"] for u in subs], [g] * 4,
+                                               [{"albedo": u["albedo"], "normal": u["normal"]} for u in subs])
+                    buf.exponent = stratification_exponent([u["color"] for u in subs])
+                    scale = oidn.stratification_scale(buf.calibrated_variance(), a["color"], b["color"],
+                                                      np.full(d.shape[:2], n / 2), np.full(d.shape[:2], n / 2), d)
+                    var_s.append(scale * var_iid[-1])
+                    terms = res.fit.variance * scale + res.fit.bias
+                    rel_pool.append(box_mean((terms / (d * d + REL_EPS)).mean(-1), 3).mean())
+                    abs_pool.append(oidn.relative_map(box_mean(terms, 3), d).mean())
+                ds, xs = np.array(ds), np.array(xs)
+                mse = float((((ds - r) ** 2) * w).mean())
+                vd = float((ds.var(0, ddof=1) * w).mean())
+                vx = float((xs.var(0, ddof=1) * w).mean())
+                row = {"scene": scene, "seed": seed, "n": n, "reps": reps, "mse": mse, "var_D": vd,
+                       "var_iid/var_D": np.mean(var_iid) / vd, "var_scaled/var_D": np.mean(var_s) / vd,
+                       "bias/mse": np.mean(bias) / mse, "estimate_pooled_rel/mse": np.mean(rel_pool) / mse,
+                       "estimate_pooled_abs/mse": np.mean(abs_pool) / mse, "halves_x/var_x": np.mean(half2) / vx}
+                print(json.dumps({k: (round(v, 3) if isinstance(v, float) else v) for k, v in row.items()}),
+                      flush=True)
+
+
 def main():
     global ARGS
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("exp", choices=("render", "rate", "estimate", "loop", "mc", "cost"))
+    ap.add_argument("exp", choices=("render", "rate", "estimate", "loop", "mc", "cost", "calib"))
     ap.add_argument("--data", default=os.path.join(ROOT, "out", "oidn_study"))
     ap.add_argument("--refs", default="/work/refs")
     ap.add_argument("--samples", type=int, default=128)
@@ -348,7 +414,7 @@ def main():
     ARGS = args = ap.parse_args()
     TASK_COST[0] = args.task_cost
     {"render": exp_render, "rate": exp_rate, "estimate": exp_estimate, "loop": exp_loop, "mc": exp_mc,
-     "cost": exp_cost}[args.exp](args)
+     "cost": exp_cost, "calib": exp_calib}[args.exp](args)
 
 
 if __name__ == "__main__":
