@@ -16,15 +16,21 @@ stand-in for the reference):
 
     CV_R = E w [(R(A) - B)^2 + (R(B) - A)^2] / 2 = E w MSE(R at n/2) + E w Var(B)
 
-since the scoring half is independent of the reconstructed one and unbiased.
-For the sample mean ``CV_mean = E w (A - B)^2 = E w (Var A + Var B)``, so with
-equal halves ``E w Var(B) = CV_mean / 2`` and
+since the scoring half is unbiased and R(A) does not read B.  The halves are
+samples of one stratified sequence, so their noise is correlated:
+``cov(A, B) = r Var(A)`` with ``r = 2^(1 - e) - 1`` from the stratification
+exponent ``e`` the initial pass measures (:func:`halves_correlation`), and
+``CV_mean = E w (A - B)^2 = 2 (1 - r) E w Var(A)``:
 
-    relMSE_R(n/2) = CV_R - CV_mean / 2,     relMSE_mean(n/2) = CV_mean / 2,
+    relMSE_mean(n/2) = CV_mean / (2 (1 - r)),
 
-clamped below by the estimate's own standard error (a reconstruction cannot be
-told from error-free by less).  This is the dual-buffer cross-validation NFOR
-(Bitterli et al. 2016) uses to select between filters, applied per method.
+the denoisers' terms in :func:`score_tile`, each mean clamped below by its
+standard error (a reconstruction cannot be told from error-free by less).  This
+is the dual-buffer cross-validation NFOR (Bitterli et al. 2016) uses to select
+between filters, applied per method.  The tiles are small and spread over the
+frame, a batch of them side by side in one image per reconstruction call
+(:func:`mosaic`); the sample mean, which needs no reconstruction, is scored on
+every stored tile.
 
 Error at the budget
 -------------------
@@ -50,8 +56,9 @@ speed-up over plain Cycles wins:
 
 the benchmark's measure (the time plain Cycles needs for the candidate's
 error over the candidate's time).  The sample mean (S = 1) is a candidate, so a
-choice never predicts worse than plain Cycles.  The tiles' count grows until
-the choice has spent ``Params.cv_share`` of the predicted render time.
+choice never predicts worse than plain Cycles.  Batches of tiles are scored
+(the first always) until the choice has spent ``Params.cv_share`` of the
+predicted render time.
 """
 from __future__ import annotations
 
@@ -78,18 +85,20 @@ SAMPLER_USES_RESULT = False
 RECONSTRUCTIONS = ("mean", "oidn", "lp", "awr", "rhf")
 SAMPLINGS = ("auto", "uniform", "adaptive")
 
-#: relMSE ~ n^-p of each reconstruction under uniform sampling: slopes between
-#: 8 and 16 spp of the benchmark's uniform-<method> runs, median over the five
-#: still sample scenes (docs/notes/auto.md); oidn: core.oidn.RATE (measured
-#: over 4-32 spp); the sample mean's is measured per scene (Buffers.exponent)
-RATES = {"oidn": 0.9, "lp": 1.16, "awr": 0.95, "rhf": 0.95}
+#: relMSE ~ n^-p of each reconstruction under uniform sampling, over the span
+#: auto extrapolates (half the initial pass, 2 spp in two 1-spp groups, to the
+#: budget): slopes from the reconstruction of a half against the reference to
+#: the benchmark's uniform-<method> runs at 8 and 16 spp, median over the six
+#: sample scenes (docs/notes/auto.md); the sample mean's is measured per scene
+#: (Buffers.exponent)
+RATES = {"oidn": 0.89, "lp": 1.08, "awr": 1.09, "rhf": 1.33}
 
 #: filter calls one reconstruction makes, relative to the one call the cost
 #: model times: oidn's reconstruct denoises the whole and both halves (its
 #: error estimate), except uniform + OIDN as auto runs it (candidate_params)
 CALLS = {"oidn": 3.0}
 
-CV_MARGIN = 8  # pixels of context around each scored tile
+CV_MARGIN = 4  # pixels of context around each scored tile
 NOISELESS = 1e-10  # half-budget relMSE of the sample mean below which the image counts as noise-free
 
 
@@ -105,9 +114,12 @@ class Params:
     cv_share: float = param(0.1, "most time the choice may spend, as a share of the predicted "
                             "render time (one tile is always scored); more: a steadier choice",
                             0.0, 10.0, label="Choice Time Share")
-    tile: int = param(32, "side of the square tiles the candidates are scored on, pixels", 8, 512,
+    tile: int = param(16, "side of the square tiles the candidates are scored on, pixels", 8, 512,
                       label="Tile Size")
     max_tiles: int = param(32, "most tiles scored", 1, 4096, label="Max Tiles")
+    batch: int = param(3, "tiles reconstructed together, side by side in one image (one call "
+                       "per candidate and half pays the fixed costs once); the first batch is "
+                       "always scored", 1, 64, label="Tiles per Batch")
 
     def __post_init__(self):
         if self.sampling not in SAMPLINGS:
@@ -272,9 +284,12 @@ def cv_regions(height: int, width: int, params: Params | None = None) -> list:
     spreads over the frame.  A frame no larger than one tile is one crop."""
     p = params or Params()
     t = int(p.tile)
-    if height <= t + 2 * CV_MARGIN or width <= t + 2 * CV_MARGIN:
+    # a tiled frame keeps a pixel beyond every crop's margin, so no crop
+    # touches the frame's edge (:func:`_interior` reads a touching side as unmargined)
+    edge = 2 * CV_MARGIN + 2
+    if height < t + edge or width < t + edge:
         return [(0, 0, int(width), int(height))]
-    ny, nx = max(1, (height - 2 * CV_MARGIN) // t), max(1, (width - 2 * CV_MARGIN) // t)
+    ny, nx = max(1, (height - edge) // t), max(1, (width - edge) // t)
     oy = (height - ny * t) // 2
     ox = (width - nx * t) // 2
     # van der Corput order over the grid cells: spread-out prefixes
@@ -372,35 +387,73 @@ def _halves(subsets, features):
     return out
 
 
-def score_tile(subsets, crop, height, width, names, exponent: float = 1.0):
+def mosaic(crops: list, subset_data: list, height: int, width: int):
+    """Several crops side by side in one image, so that each candidate
+    reconstructs a whole batch in one call per half (its fixed cost paid
+    once, the tiles spread over the frame): ``(subsets, mask)`` with the
+    mosaic's subsets as (color, features, count) and ``mask`` (h, w) True on
+    the crops' scored interiors.  Cells of a grid (the fewest empty cells,
+    then the squarest), each a crop
+    padded to the largest by repeating its edge (padding is never scored);
+    the crops' margins keep the interiors' context, so a seam lies at least
+    ``CV_MARGIN`` pixels from a scored pixel."""
+    k = len(crops)
+    ch = max(y1 - y0 for x0, y0, x1, y1 in crops)
+    cw = max(x1 - x0 for x0, y0, x1, y1 in crops)
+    # the fewest empty cells, then the squarest grid
+    cols = min(range(int(np.ceil(np.sqrt(k))), k + 1), key=lambda c: (-(-k // c) * c - k, c))
+    rows = -(-k // cols)
+    n_sub = len(subset_data[0])
+    mask = np.zeros((rows * ch, cols * cw), bool)
+    colors = [np.zeros((rows * ch, cols * cw, 3)) for _ in range(n_sub)]
+    feats = [{key: np.zeros((rows * ch, cols * cw) + np.shape(v)[2:]) for key, v in subset_data[0][s][1].items()}
+             for s in range(n_sub)]
+    # empty cells (k not a multiple of cols) repeat the first crop, unscored
+    cells = list(range(k)) + [0] * (rows * cols - k)
+    for c, i in enumerate(cells):
+        x0, y0, x1, y1 = crops[i]
+        r0, c0 = (c // cols) * ch, (c % cols) * cw
+        pad = ((0, ch - (y1 - y0)), (0, cw - (x1 - x0)))
+        for s, (color, fs, _) in enumerate(subset_data[i]):
+            colors[s][r0:r0 + ch, c0:c0 + cw] = np.pad(color, pad + ((0, 0),), mode="edge")
+            for key, v in fs.items():
+                v = np.asarray(v)
+                feats[s][key][r0:r0 + ch, c0:c0 + cw] = np.pad(v, pad + ((0, 0),) * (v.ndim - 2), mode="edge")
+        if c < k:
+            iy, ix = _interior(crops[i], height, width)
+            mask[r0:r0 + ch, c0:c0 + cw][iy, ix] = True
+    counts = [subset_data[0][s][2] for s in range(n_sub)]
+    return [(colors[s], feats[s], counts[s]) for s in range(n_sub)], mask
+
+
+def score_tile(subsets, crop, height, width, names, exponent: float = 1.0, mask=None):
     """Per-pixel estimates of each reconstruction's relMSE at half the
     initial samples on one crop's interior (module notes), with the
     reconstruction's seconds and model dimension.
 
     ``subsets``: list of (color (h, w, 3), features dict, count).  The
     denoisers' terms carry a control variate: in ``d_R - d_mean/2`` the
-    halves' squared noise cancels exactly, but the zero-mean product
-    ``w (A - T)(B - T)`` of their noise stays and dominates the terms'
-    spread; it is subtracted with the truth ``T`` replaced by the best
-    candidate's mean of halves ``D* = (R*(A) + R*(B)) / 2``.  What remains is
-    small and common to every candidate: ``E = c - b^2 - v/2`` with ``c`` the
-    covariance of ``R*(A)`` with ``A`` (its weight on the pixel's own
-    samples), ``b^2`` and ``v`` the squared bias and variance of ``R*``.
-    Choice: this over ``(A - R*(A))(B - R*(B))`` (offset ``-b^2``: it drops
-    the best candidate's bias, a 2.4x underestimate of OIDN measured) and no
-    control variate (3-9x the spread over noise realisations); figures in
-    docs/notes/auto.md."""
+    halves' squared noise cancels, but the product ``w (A - T)(B - T)`` of
+    their noise stays and dominates the terms' spread; it is subtracted with
+    ``T`` replaced by the best candidate's own reconstruction of each half,
+    ``w (A - R*(A))(B - R*(B))``.  R*(A) reads only A, so that product's mean
+    is the halves' covariance (the same share as in ``d_mean / 2``: the two
+    cancel, whatever the stratification) plus the best candidate's squared
+    bias ``b*^2``: ``E terms_R = MSE_R - b*^2``, the offset common to every
+    candidate (the plain difference's lower bound guards a large one:
+    :func:`combine_scores`).  The former stand-in ``T = (R*(A) + R*(B)) / 2``
+    added ``c - v/2`` (``c`` the covariance of R*(A) with A): 1.3-1.9x over
+    the true half-budget error on the sample scenes (docs/notes/auto.md).
+    ``mask`` (a :func:`mosaic`'s): score these pixels of the subsets' image
+    instead of the crop's interior."""
     features = [k for k in subsets[0][1]]
     buf_a, buf_b = _halves(subsets, features)
     for b in (buf_a, buf_b):
         b.exponent = exponent
-    iy, ix = _interior(crop, height, width)
-    ca, cb = buf_a.color.mean[iy, ix], buf_b.color.mean[iy, ix]
-    n = sum(float(s[2]) for s in subsets)
-    whole = sum(float(s[2]) * s[0] for s in subsets) / max(n, 1e-12)
-    w = 1.0 / (box_mean(np.clip(whole, 0.0, None), 1)[iy, ix] ** 2 + REL_EPS)
-    d_mean = _finite(w * (ca - cb) ** 2)
-    out = {"mean": {"terms": d_mean / 2.0, "seconds": 0.0, "dimension": None}}
+    idx = mask if mask is not None else _interior(crop, height, width)
+    ca, cb = buf_a.color.mean[idx], buf_b.color.mean[idx]
+    w, d_mean, var_half = _mean_terms(subsets, idx, ca, cb, exponent)
+    out = {"mean": {"terms": var_half, "seconds": 0.0, "dimension": None}}
     images = {}
     for name in names:
         if name == "mean":
@@ -408,18 +461,48 @@ def score_tile(subsets, crop, height, width, names, exponent: float = 1.0):
         t0 = time.perf_counter()
         ra, rb = _reconstruct(name, buf_a), _reconstruct(name, buf_b)
         seconds = time.perf_counter() - t0
-        ia, ib = _image(ra)[iy, ix], _image(rb)[iy, ix]
+        ia, ib = _image(ra)[idx], _image(rb)[idx]
         images[name] = (ia, ib)
         d = _finite(w * ((ia - cb) ** 2 + (ib - ca) ** 2) / 2.0)
-        out[name] = {"terms": d - d_mean / 2.0, "plain": d - d_mean / 2.0, "seconds": seconds,
+        out[name] = {"terms": d - d_mean / 2.0, "plain": d - var_half, "seconds": seconds,
                      "dimension": _mean_dim(ra, rb), "raw": float(d.mean())}
     if images:
         best = min(images, key=lambda k: out[k]["raw"])
-        ref = 0.5 * (images[best][0] + images[best][1])
-        cross = _finite(w * (ca - ref) * (cb - ref))
+        cross = _finite(w * (ca - images[best][0]) * (cb - images[best][1]))
         for name in images:
             out[name]["terms"] = out[name]["terms"] - cross
     return out
+
+
+def _mean_terms(subsets, idx, ca, cb, exponent: float):
+    """(weights, ``w (A - B)^2``, the sample mean's per-pixel relMSE at half
+    the samples) on the pixels ``idx``.  The halves' noise is correlated (one
+    stratified sequence): ``E (A - B)^2 = 2 Var(A) (1 - r)`` with ``r`` of
+    :func:`halves_correlation`."""
+    n = sum(float(s[2]) for s in subsets)
+    whole = sum(float(s[2]) * s[0] for s in subsets) / max(n, 1e-12)
+    w = 1.0 / (box_mean(np.clip(whole, 0.0, None), 1)[idx] ** 2 + REL_EPS)
+    d_mean = _finite(w * (ca - cb) ** 2)
+    return w, d_mean, d_mean / (2.0 * (1.0 - halves_correlation(exponent)))
+
+
+def mean_terms(subsets, crop, height: int, width: int, exponent: float = 1.0) -> np.ndarray:
+    """The sample mean's per-pixel relMSE at half the samples on one crop's
+    interior (no reconstruction: cheap on every stored crop)."""
+    iy, ix = _interior(crop, height, width)
+    a, b = (sum(float(s[2]) * s[0][iy, ix] for s in part) / max(sum(float(s[2]) for s in part), 1e-12)
+            for part in (subsets[0::2], subsets[1::2]))
+    return _mean_terms(subsets, (iy, ix), a, b, exponent)[2]
+
+
+def halves_correlation(exponent: float) -> float:
+    """Correlation ``r`` of the halves' noise, ``cov(A, B) / Var(A)``, from
+    the stratification exponent ``e`` (``Var(mean of n) ~ n^-e``): the whole
+    ``(A + B) / 2`` has variance ``Var(A) (1 + r) / 2 = Var(A) 2^-e``, so
+    ``r = 2^(1 - e) - 1`` (0 for independent samples, e = 1; clamped to
+    (-0.9, 0.9])."""
+    e = float(exponent) if np.isfinite(exponent) else 1.0
+    return float(np.clip(2.0 ** (1.0 - e) - 1.0, -0.9, 0.9))
 
 
 def _reconstruct(name: str, buf: Buffers) -> MethodResult:
@@ -448,11 +531,19 @@ def _mean_dim(ra, rb):
     return float(np.mean(dims)) if dims else None
 
 
+def _clamped(terms: np.ndarray) -> dict:
+    """Mean of per-pixel terms clamped below by its standard error."""
+    rel = float(terms.mean())
+    err = float(terms.std() / np.sqrt(terms.size)) if terms.size > 1 else abs(rel)
+    return {"relmse_half": max(rel, err, 1e-12), "stderr": err}
+
+
 def combine_scores(tiles: list) -> dict:
     """Per reconstruction, over the scored tiles: the half-budget relMSE
     (mean of the per-pixel terms, clamped below by its standard error: an
     error that small cannot be told from zero), its standard error, the
-    seconds spent and the model dimension."""
+    seconds spent and the model dimension.  The plain terms subtract the
+    correlation-corrected variance of a half (``d_R - Var(A)``)."""
     out = {}
     for name in tiles[0]:
         terms = np.concatenate([t[name]["terms"].ravel() for t in tiles])
@@ -602,12 +693,20 @@ def select(crops: list, subset_data: list, ctx: Context, rel_var, params: Params
                                     f"{m.NAME} by default"}, params)
     t0 = time.perf_counter()
     t_plain = render_seconds(ctx)[1]
-    tiles = []
-    for crop, subs in zip(crops, subset_data):
-        tiles.append(score_tile(subs, crop, height, width, names, ctx.exponent))
+    tiles, scored = [], 0
+    step = max(1, int(p.batch))
+    for i in range(0, len(crops), step):
+        subs, mask = mosaic(crops[i:i + step], subset_data[i:i + step], height, width)
+        tiles.append(score_tile(subs, None, height, width, names, ctx.exponent, mask=mask))
+        scored += len(crops[i:i + step])
         if time.perf_counter() - t0 >= p.cv_share * t_plain:
             break
     scores = combine_scores(tiles)
+    # the sample mean needs no reconstruction: scored on every stored crop
+    mean_all = np.concatenate([mean_terms(subs, crop, height, width, ctx.exponent).ravel()
+                               for crop, subs in zip(crops, subset_data)])
+    if mean_all.size:
+        scores["mean"] = {**scores["mean"], **_clamped(mean_all)}
     rows = predict(scores, ctx, rel_var, p, reconstruction_costs([n for n in names if n != "mean"]))
     best = rows[0]
     chosen = method(best["reconstruction"], best["sampling"])
@@ -618,9 +717,9 @@ def select(crops: list, subset_data: list, ctx: Context, rel_var, params: Params
            f"(relMSE {best['relmse']:.2e} in {best['seconds']:.2f} s)")
     if runner is not None:
         why += f"; next {runner['name']} {runner['speedup']:.2f}x"
-    why += f"; {len(tiles)} tile(s) cross-validated in {time.perf_counter() - t0:.2f} s"
+    why += f"; {scored} tile(s) cross-validated in {time.perf_counter() - t0:.2f} s"
     return Selection(chosen, {"chosen": chosen.NAME, "params": params, "candidates": rows, "why": why,
-                              "tiles": len(tiles), "seconds": time.perf_counter() - t0, **extra}, params)
+                              "tiles": scored, "seconds": time.perf_counter() - t0, **extra}, params)
 
 
 # ---------------------------------------------------- Method members

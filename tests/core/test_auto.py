@@ -192,7 +192,8 @@ def test_costs_are_measured_once_and_cached(tmp_path, monkeypatch):
 
 
 def test_cv_regions_lie_inside_the_frame_and_one_crop_covers_a_small_frame():
-    assert auto.cv_regions(30, 40) == [(0, 0, 40, 30)]
+    side = auto.Params().tile + 2 * auto.CV_MARGIN
+    assert auto.cv_regions(side - 2, side) == [(0, 0, side, side - 2)]
     crops = auto.cv_regions(200, 300, auto.Params(tile=32, max_tiles=8))
     assert len(crops) == 8
     interiors = set()
