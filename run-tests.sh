@@ -5,7 +5,7 @@
 # Under CI=true a missing version venv is a failure, elsewhere it is skipped with a note.
 set -uo pipefail
 cd "$(dirname "${BASH_SOURCE[0]}")"
-INTEGRATION="tests/test_executor.py tests/test_job.py tests/test_cli.py tests/test_extension.py tests/test_denoise_cli.py tests/test_api.py tests/test_regression_example.py tests/test_oidn_blender.py"
+INTEGRATION="tests/test_executor.py tests/test_job.py tests/test_cli.py tests/test_extension.py tests/test_denoise_cli.py tests/test_api.py tests/test_regression_example.py tests/test_oidn_blender.py tests/test_cryptomatte_blender.py"
 status=0
 run() {  # run VENV ARGS...
   local py="$1/bin/python"; shift

@@ -15,9 +15,17 @@ the temporary scene, its node tree copy and the image are removed afterwards.
 :func:`plan` says, before rendering, which view layers and passes the
 compositor reads, so the adaptive render accumulates them as feature passes
 (``addon.executor.PASS_SOURCES``).  What an adaptive render cannot produce
-(Cryptomatte, the Noisy Image, another scene's layers, Render Layers nodes
-inside node groups) is a :class:`CompositorError` naming it; the job then
-writes the raw result and says the compositor was skipped.
+(the Noisy Image, another scene's layers, Render Layers nodes inside node
+groups) is a :class:`CompositorError` naming it; the job then writes the
+raw result and says the compositor was skipped.
+
+Cryptomatte: a Cryptomatte node (``CompositorNodeCryptomatteV2``) whose
+source is the render is switched to the Image source on the same EXR, which
+carries the merged Cryptomatte layers and header (``core/cryptomatte.py``),
+with the same layer (``<view layer>.CryptoObject``...): the node reads the
+mattes Blender's own render would give (checked under 4.2, 4.5 and 5.0).
+The legacy Cryptomatte node (picking by colour from Render Layers sockets)
+reads sockets we do not feed: a CompositorError.
 
 Version paths: 4.2-4.5 keep the tree in ``scene.node_tree`` (used when
 ``scene.use_nodes``), copied with the scene; 5.0 keeps it in the data-block
@@ -85,6 +93,12 @@ def _render_layer_nodes(tree) -> list:
     return [n for n in tree.nodes if n.bl_idname == "CompositorNodeRLayers" and not n.mute]
 
 
+def _cryptomatte_nodes(tree) -> list:
+    """Cryptomatte nodes of ``tree`` that read the render (not an image)."""
+    return [n for n in tree.nodes if n.bl_idname == "CompositorNodeCryptomatteV2" and not n.mute
+            and n.source == "RENDER"]
+
+
 def _groups_reading_layers(tree, seen=None) -> list:
     """Names of node groups (nested too) that hold a Render Layers node."""
     seen = set() if seen is None else seen
@@ -112,9 +126,21 @@ def plan(scene) -> Plan | None:
         raise CompositorError(f"the compositor reads render layers inside node group {groups[0]!r}, "
                               "which an adaptive render cannot feed")
     nodes = _render_layer_nodes(tree)
-    if not nodes:
+    crypto = _cryptomatte_nodes(tree)
+    for node in crypto:
+        if node.scene is not None and node.scene != scene:
+            raise CompositorError(f"a Cryptomatte node reads scene {node.scene.name!r}; an adaptive render "
+                                  f"renders only {scene.name!r}")
+        layer, _, base = str(node.layer_name).rpartition(".")
+        vl = scene.view_layers.get(layer)
+        if vl is None or not getattr(vl, f"use_pass_cryptomatte_{base[len('Crypto'):].lower()}", False):
+            raise CompositorError(f"a Cryptomatte node reads {node.layer_name!r}, which the render does "
+                                  "not have (enable it on the view layer)")
+    if not nodes and not crypto:
         return None
     out = Plan()
+    for node in crypto:
+        out.layers.setdefault(str(node.layer_name).rpartition(".")[0], [])
     for node in nodes:
         if node.scene is not None and node.scene != scene:
             raise CompositorError(f"the compositor reads scene {node.scene.name!r}; an adaptive render "
@@ -149,23 +175,28 @@ def layer_passes(result_rgba: np.ndarray, features: dict, names) -> dict:
     return passes
 
 
-def composite(scene, layers: dict, tmpdir: str | None = None) -> np.ndarray:
+def composite(scene, layers: dict, tmpdir: str | None = None, attributes: dict | None = None) -> np.ndarray:
     """Run the compositor of ``scene`` on ``layers`` (view layer name -> the
     :func:`layer_passes` of that layer, all one size) and return the
     composited (H, W, 4) float32 image.  The scene is not modified: a
     temporary copy composites it, and File Output nodes write where the
-    user's tree says.  CompositorError when the compositor gave no image."""
+    user's tree says.  CompositorError when the compositor gave no image.
+    ``attributes``: header attributes of the layers' file (the result's
+    ``cryptomatte/<key>/...``, which Cryptomatte nodes read)."""
     from .executor import quiet_stdout
     own = tmpdir is None
     tmpdir = tmpdir or tempfile.mkdtemp(prefix="cycles-adaptive-comp-")
     shape = next(iter(next(iter(layers.values())).values())).shape[:2]
     src = os.path.join(tmpdir, "layers.exr")
-    imageio.write_multilayer(src, layers.items())
+    imageio.write_multilayer(src, layers.items(), attributes=attributes)
     dst = os.path.join(tmpdir, "composite.exr")
     img = copy = group = None
     try:
         img = bpy.data.images.load(src, check_existing=False)
         img.name = "cycles_adaptive_layers"
+        # a Cryptomatte node's layer name reads empty in a scene copy: taken from the user's tree
+        crypto_names = {n.name: str(n.layer_name) for n in _cryptomatte_nodes(node_tree(scene))} \
+            if node_tree(scene) is not None else {}
         copy = scene.copy()
         copy.name = "cycles_adaptive_composite"
         if hasattr(copy, "compositing_node_group"):
@@ -174,7 +205,7 @@ def composite(scene, layers: dict, tmpdir: str | None = None) -> np.ndarray:
             tree = group
         else:
             tree = copy.node_tree
-        _feed(tree, img)
+        _feed(tree, img, crypto_names)
         r = copy.render
         r.use_compositing, r.use_sequencer = True, False
         r.use_border, r.use_crop_to_border = False, False
@@ -208,10 +239,12 @@ def composite(scene, layers: dict, tmpdir: str | None = None) -> np.ndarray:
             shutil.rmtree(tmpdir, ignore_errors=True)
 
 
-def _feed(tree, img) -> None:
+def _feed(tree, img, crypto_names: dict | None = None) -> None:
     """Replace each Render Layers node of ``tree`` by an Image node reading
     the same view layer of ``img`` (its links moved socket by socket: the
-    result's "Image" is the EXR's "Combined")."""
+    result's "Image" is the EXR's "Combined"); switch each Cryptomatte node
+    reading the render to ``img`` with the layer set ``crypto_names`` (node
+    name -> ``<view layer>.CryptoObject``...) gives it."""
     for node in _render_layer_nodes(tree):
         inode = tree.nodes.new("CompositorNodeImage")
         inode.image = img
@@ -228,3 +261,11 @@ def _feed(tree, img) -> None:
         tree.nodes.remove(node)
     for node in [n for n in tree.nodes if n.bl_idname == "CompositorNodeRLayers"]:
         tree.nodes.remove(node)  # muted ones: a muted node reads nothing, but would still render
+    for node in _cryptomatte_nodes(tree):  # the same layer set, from our file's layers and header
+        name = (crypto_names or {}).get(node.name) or str(node.layer_name)
+        node.source = "IMAGE"
+        node.image = img
+        try:
+            node.layer_name = name
+        except TypeError:
+            raise CompositorError(f"Cryptomatte {name!r} is missing from the result") from None

@@ -24,6 +24,7 @@ import tempfile
 import bpy
 import numpy as np
 
+from ..core import cryptomatte
 from ..core import io as imageio
 from ..core import regions
 
@@ -206,11 +207,12 @@ def set_exr_output(guard: SettingsGuard, settings) -> None:
     guard.set(settings, "exr_codec", "ZIP")
 
 
-def render_still(scene, view_layer, path: str, what: str = "") -> dict:
+def render_still(scene, view_layer, path: str, what: str = "", attributes: dict | None = None) -> dict:
     """Render ``scene`` / ``view_layer`` once with its current settings to
     ``path`` (``write_still``, Cycles' log silenced), read the file back and
     delete it: the passes dict of :func:`core.io.read_layers`.  SceneError
-    (naming ``what``) when Cycles wrote no file."""
+    (naming ``what``) when Cycles wrote no file.  ``attributes``: a dict
+    that receives the file's string header attributes (Cryptomatte's)."""
     scene.render.filepath = path
     with quiet_stdout():
         bpy.ops.render.render(write_still=True, scene=scene.name, layer=view_layer.name)
@@ -218,12 +220,50 @@ def render_still(scene, view_layer, path: str, what: str = "") -> dict:
         raise SceneError("Cycles wrote no image" + (f" {what}" if what else ""))
     # a multilayer file of a scene with several view layers holds each (the others empty): read ours
     try:
-        passes, _ = imageio.read_layers(path, view_layer.name)
+        passes, meta = imageio.read_layers(path, view_layer.name)
     except imageio.ImageFileError as exc:
         raise SceneError(f"Cycles wrote no layer {view_layer.name!r}" + (f" {what}" if what else "")
                          + f" ({exc})") from None
+    if attributes is not None:
+        attributes.update(meta["attributes"])
     os.unlink(path)
     return passes
+
+
+#: view-layer switch -> Cryptomatte pass base name (layers <base>00, 01, ...:
+#: R=id0, G=cov0, B=id1, A=cov1; same names under 4.2, 4.5 and 5.0, which
+#: write them in every border render, also with sample_offset > 0, with
+#: coverage the fraction of that render's samples: core/cryptomatte.py)
+CRYPTOMATTE_SWITCHES = {"use_pass_cryptomatte_object": "CryptoObject",
+                        "use_pass_cryptomatte_material": "CryptoMaterial",
+                        "use_pass_cryptomatte_asset": "CryptoAsset"}
+
+
+def cryptomatte_bases(view_layer) -> tuple:
+    """The Cryptomatte pass base names ``view_layer`` has on."""
+    return tuple(b for a, b in CRYPTOMATTE_SWITCHES.items() if getattr(view_layer, a, False))
+
+
+def cryptomatte_ranks(passes: dict, bases, attributes: dict) -> dict:
+    """``{base: (ids uint32 (h, w, L), coverage (h, w, L), header)}`` from a
+    render's passes: its layers ``<base>00``, ``01``, ... in order and its
+    ``cryptomatte/<key>/...`` header attributes (``header``: those of the
+    key whose ``name`` ends with ``.<base>``, keys without the prefix).
+    SceneError when a base's layers are missing."""
+    out = {}
+    for base in bases:
+        names = sorted(k for k in passes if k.startswith(base) and k[len(base):].isdigit())
+        if not names:
+            raise SceneError(f"Cryptomatte pass {base!r} missing from the render (have {sorted(passes)})")
+        ids, cov = cryptomatte.layers_to_ranks([passes[n] for n in names])
+        header = {}
+        for key, value in attributes.items():
+            parts = key.split("/")
+            if len(parts) == 3 and parts[0] == "cryptomatte" and \
+                    attributes.get(f"cryptomatte/{parts[1]}/name", "").endswith("." + base):
+                header[parts[2]] = value
+        out[base] = (ids, cov, header)
+    return out
 
 
 class CyclesExecutor:
@@ -375,7 +415,8 @@ class CyclesExecutor:
             c.sample_offset = int(task.offset)
         path = os.path.join(self.tmpdir, f"task{self.renders:06d}.exr")
         self.renders += 1
-        passes = render_still(s, self.view_layer, path, f"for {task}")
+        attributes = {}
+        passes = render_still(s, self.view_layer, path, f"for {task}", attributes)
         h, w = y1 - y0, x1 - x0
         color = passes.get("Combined")
         if color is None or color.shape[:2] != (h, w):
@@ -390,6 +431,9 @@ class CyclesExecutor:
             if missing:
                 raise SceneError(f"pass {missing[0]!r} missing from the render (have {sorted(passes)})")
             feats[f] = sum(passes[n].astype(np.float64) for n in names)
+        bases = cryptomatte_bases(self.view_layer)
+        if bases:  # ranked ids, not a mean: merged apart (core.pipeline.merge_cryptomatte)
+            feats["cryptomatte"] = cryptomatte_ranks(passes, bases, attributes)
         return color.astype(np.float64), feats
 
     def camera_info(self, frame: int) -> dict:

@@ -41,7 +41,7 @@ from dataclasses import asdict, dataclass, field, fields
 
 import numpy as np
 
-from . import maps, methods, metrics, regions, storage, variance
+from . import cryptomatte, maps, methods, metrics, regions, storage, variance
 from .buffers import Buffers
 from .method import Method, check_ranges, consistency_guard, param, params_from_dict
 
@@ -269,6 +269,8 @@ class AdaptiveRun:
         self.sampling_seconds = 0.0     # elapsed() when the sampling ended
         self.selection: dict | None = None  # what a selecting method (auto) chose, for reports
         self.dropped: tuple = ()            # feature passes found to carry no information
+        self.cryptomatte: dict = {}         # base -> CryptoAccumulator (merge_cryptomatte)
+        self.cryptomatte_header: dict = {}  # base -> the renders' cryptomatte/<key>/ attributes
         self._cv: list = []                 # initial subsets on a selecting method's tiles
         self._initial_seconds: list = []    # render seconds of each initial subset
         self._last_render_seconds = 0.0     # the latest task's render (_count_render)
@@ -624,6 +626,8 @@ class AdaptiveRun:
     def _merge(self, task, color, feats) -> None:
         t0 = time.perf_counter()
         merge_render(self.buffers, task, color, feats)
+        merge_cryptomatte(self.cryptomatte, self.cryptomatte_header, task, feats.get("cryptomatte"),
+                          (self.height, self.width))
         self.tasks_rendered += 1
         self.timing.overhead += time.perf_counter() - t0
 
@@ -766,10 +770,11 @@ class AdaptiveRun:
                 "iteration": self.iteration, "tasks_rendered": self.tasks_rendered,
                 "overshoot": self.overshoot, "timing": asdict(self.timing), "history": self.history,
                 "exponent": self.buffers.exponent, "selection": self.selection,
-                "dropped": list(self.dropped)}
-        storage.save_checkpoint(self.checkpoint_path, self.buffers,
-                                {"next_index": self.next_index, "reused": self.reused},
-                                meta, self.method_state)
+                "dropped": list(self.dropped), "cryptomatte_header": self.cryptomatte_header}
+        arrays = {"next_index": self.next_index, "reused": self.reused}
+        for base, acc in self.cryptomatte.items():
+            arrays.update({f"crypto__{base}__{k}": v for k, v in acc.state().items()})
+        storage.save_checkpoint(self.checkpoint_path, self.buffers, arrays, meta, self.method_state)
 
     def load_checkpoint(self, path: str) -> None:
         """Continue from a checkpoint written by a run with the same options
@@ -793,6 +798,17 @@ class AdaptiveRun:
         self._stop_rendering()
         self.next_index = arrays["next_index"]
         self.reused = arrays.get("reused", np.zeros((self.height, self.width)))
+        self.cryptomatte_header = dict(meta.get("cryptomatte_header") or {})
+        self.cryptomatte = {}
+        for base in self.cryptomatte_header:
+            try:
+                acc = cryptomatte.CryptoAccumulator.from_state(
+                    {k: arrays[f"crypto__{base}__{k}"] for k in ("ids", "wcov", "weight")})
+            except (KeyError, ValueError) as exc:
+                raise ValueError(f"{path}: checkpoint's Cryptomatte {base!r} is unreadable ({exc})") from None
+            if acc.weight.shape != (self.height, self.width):
+                raise ValueError(f"{path}: checkpoint's Cryptomatte {base!r} is {acc.weight.shape}")
+            self.cryptomatte[base] = acc
         self.iteration = int(meta["iteration"])
         self.tasks_rendered = int(meta["tasks_rendered"])
         self.overshoot = int(meta["overshoot"])
@@ -912,6 +928,38 @@ def merge_render(buffers: Buffers, task, color, features) -> None:
     buffers.merge_group(color[:, :, :3], task.samples,
                         {k: v for k, v in feats.items() if k in buffers.features},
                         region=(task.x0, task.y0, task.x1, task.y1))
+
+
+#: ranks an accumulator keeps per rendered rank (the output keeps the render's
+#: own count): ids that no single render ranked first still find a slot
+CRYPTOMATTE_SLACK = 2
+
+
+def merge_cryptomatte(accumulators: dict, headers: dict, task, ranks, shape) -> None:
+    """Merge one task's Cryptomatte ranks (the executor's
+    ``features["cryptomatte"]``: base -> (ids, coverage, header); None or
+    empty: nothing) into ``accumulators`` (base -> CryptoAccumulator, made
+    at the first render, ``shape`` (H, W), with ``CRYPTOMATTE_SLACK`` x its
+    levels: the output's levels are ``capacity // CRYPTOMATTE_SLACK``) over the
+    task's rectangle, weighted by the task's samples (coverage is the
+    fraction of a render's samples); ``headers`` keeps each base's header
+    attributes, the manifests' entries united."""
+    if not ranks:
+        return
+    for base, (ids, cov, header) in ranks.items():
+        acc = accumulators.get(base)
+        if acc is None:
+            acc = accumulators[base] = cryptomatte.CryptoAccumulator(
+                shape[0], shape[1], CRYPTOMATTE_SLACK * ids.shape[2])
+        acc.merge(ids, cov, task.samples, region=(task.x0, task.y0, task.x1, task.y1))
+        old = headers.get(base, {})
+        new = dict(old, **header)
+        try:
+            manifest = dict(json.loads(old.get("manifest") or "{}"), **json.loads(header.get("manifest") or "{}"))
+            new["manifest"] = json.dumps(manifest, separators=(",", ":"))
+        except (TypeError, ValueError):
+            pass
+        headers[base] = new
 
 
 def render_subsets(executor, buffers: Buffers, spp: int, subsets: int, frame: int = 0) -> Buffers:

@@ -34,10 +34,11 @@ from dataclasses import dataclass, fields
 
 import numpy as np
 
+from ..core import cryptomatte
 from ..core import io as imageio
 from ..core import methods, metrics
 from ..core.method import consistency_guard, params_from_dict
-from ..core.pipeline import AdaptiveRun, Options, Progress, Work, option_fields
+from ..core.pipeline import CRYPTOMATTE_SLACK, AdaptiveRun, Options, Progress, Work, option_fields
 from ..core.resources import peak_rss_mb
 from ..core.storage import buffers_from_passes, buffers_to_passes
 
@@ -306,7 +307,33 @@ class ExrFormat:
         """Whether pass ``name`` goes into the file."""
         if self.contents == "full":
             return True
-        return name in IMAGE_PASSES or (name.startswith("Feat_") and not name.endswith("_M2"))
+        return (name in IMAGE_PASSES or (name.startswith("Feat_") and not name.endswith("_M2"))
+                or name.startswith(CRYPTOMATTE_PREFIXES))
+
+
+#: pass name prefixes of Cryptomatte layers (kept in every EXR: compositing reads them)
+CRYPTOMATTE_PREFIXES = ("CryptoObject", "CryptoMaterial", "CryptoAsset")
+
+
+def cryptomatte_output(run, layer: str, passes: dict) -> dict:
+    """Add the run's merged Cryptomatte ranks to ``passes`` as Blender names
+    them (``<base>00``, ``01``, ...; channels r, g, b, a; float32: ids are
+    bit patterns) and return their header attributes
+    (``cryptomatte/<key>/name|hash|conversion|manifest``, the key the
+    MurmurHash3 of ``<layer>.<base>``), so Nuke / a compositor finds them."""
+    attrs = {}
+    for base, acc in getattr(run, "cryptomatte", {}).items():
+        levels = max(1, acc.capacity // CRYPTOMATTE_SLACK)
+        for i, arr in enumerate(acc.layers(levels)):
+            passes[f"{base}{i:02d}"] = (arr, ("r", "g", "b", "a"))
+        header = getattr(run, "cryptomatte_header", {}).get(base, {})
+        name = f"{layer}.{base}"
+        key = cryptomatte.header_key(name)
+        attrs[f"cryptomatte/{key}/name"] = name
+        attrs[f"cryptomatte/{key}/hash"] = header.get("hash", "MurmurHash3_32")
+        attrs[f"cryptomatte/{key}/conversion"] = header.get("conversion", "uint32_to_float32")
+        attrs[f"cryptomatte/{key}/manifest"] = header.get("manifest", "{}")
+    return attrs
 
 
 def exr_format(scene=None, depth: str = "scene", contents: str = "full") -> ExrFormat:
@@ -398,11 +425,13 @@ def run_compositor(scene, plan, outputs) -> tuple:
     bpy); ``(None, "skipped: why")`` when it cannot run."""
     from ..addon import compositor
     try:
-        layers = {}
+        layers, attributes = {}, {}
         for name, out in outputs:
             feats = {f: _array(out.passes[f"Feat_{f}"]) for f in plan.features(name)}
             layers[name] = compositor.layer_passes(_array(out.passes["Combined"]), feats, plan.features(name))
-        return compositor.composite(scene, layers), "applied"
+            layers[name].update({k: v for k, v in out.passes.items() if k.startswith(CRYPTOMATTE_PREFIXES)})
+            attributes.update({k: v for k, v in out.attributes.items() if k.startswith("cryptomatte/")})
+        return compositor.composite(scene, layers, attributes=attributes), "applied"
     except (compositor.CompositorError, KeyError) as exc:
         return None, f"skipped: {exc}"
 
@@ -544,6 +573,7 @@ class RenderJob:
         error = np.where(np.isfinite(result.error), result.error, 0.0)
         passes = buffers_to_passes(run.buffers, image, error)
         passes["NextIndex"] = run.next_index.astype(np.float64)
+        crypto_attrs = cryptomatte_output(run, self.layer_name, passes)
         ex = self.executor
         if ex.domain != (0, 0, ex.full_w, ex.full_h) and not ex.user_crop:
             passes = {k: ((pad_to_frame(v[0], ex.domain, (ex.full_w, ex.full_h)), v[1])
@@ -556,6 +586,7 @@ class RenderJob:
                  "cycles_adaptive/blender": bpy.app.version_string,
                  "cycles_adaptive/partial": str(bool(partial)).lower(),
                  "cycles_adaptive/reconstructed": str(bool(reconstructed)).lower()}
+        attrs.update(crypto_attrs)
         h, w = run.height, run.width
         summary = {
             "method": self.options.method,
