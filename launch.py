@@ -10,11 +10,13 @@ import sys
 ROOT = os.path.dirname(os.path.abspath(__file__))
 
 
-def load_package(name: str = "cycles_adaptive"):
+def load_package(name: str = "cycles_adaptive", root: str = ROOT):
+    """The repository at ``root`` (default this one) imported as package ``name``
+    (another tree under another name lets a tool compare two versions)."""
     if name in sys.modules:
         return sys.modules[name]
-    spec = importlib.util.spec_from_file_location(name, os.path.join(ROOT, "__init__.py"),
-                                                  submodule_search_locations=[ROOT])
+    spec = importlib.util.spec_from_file_location(name, os.path.join(root, "__init__.py"),
+                                                  submodule_search_locations=[root])
     mod = importlib.util.module_from_spec(spec)
     sys.modules[name] = mod
     spec.loader.exec_module(mod)

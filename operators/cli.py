@@ -278,22 +278,16 @@ def _render_frame(args, scene, layers, opts, cluster) -> int:
     job = (RenderJob(scene, layers[0], opts, out, **kw) if len(layers) == 1 else
            LayersJob(scene, layers, opts, out, **kw))
     last = 0.0
-    steps = job.steps()
-    with _SigintFlag() as flag:
-        try:
-            for step in steps:
-                now = time.perf_counter()
-                if not args.quiet and (step.stage != "render" or now - last > 0.5 or
-                                       step.tasks_done == step.tasks_total):
-                    print(f"[cycles-adaptive] {100 * step.fraction:5.1f}% {step.message}", flush=True)
-                    last = now
-                if flag.set:  # Ctrl-C during a render: stop at its end
-                    break
-        except KeyboardInterrupt:
-            flag.set = True
-        finally:
-            steps.close()
-    interrupted = flag.set
+
+    def show(step):
+        nonlocal last
+        now = time.perf_counter()
+        if not args.quiet and (step.stage != "render" or now - last > 0.5 or
+                               step.tasks_done == step.tasks_total):
+            print(f"[cycles-adaptive] {100 * step.fraction:5.1f}% {step.message}", flush=True)
+            last = now
+
+    interrupted = _run_steps(job.steps(), show)
     if interrupted:
         print("[cycles-adaptive] interrupted: writing the partial result", file=sys.stderr, flush=True)
     t_write = time.perf_counter()
@@ -310,6 +304,26 @@ def _written(summary: dict, seconds: float) -> str:
     outs = [p for p in (summary.get("out"), summary.get("preview")) if p]
     what = " and ".join(outs) if outs else "nothing (no output path)"
     return f"done: wrote {what} in {seconds:.2f} s"
+
+
+def _run_steps(steps, show, stop=None) -> bool:
+    """Run the generator ``steps``, ``show(step)`` for each, under
+    :class:`_SigintFlag`: after Ctrl-C the run stops at the next step (the end
+    of the current render), calling ``stop(steps)`` first if given.  The
+    generator is closed at the end; returns True when interrupted."""
+    with _SigintFlag() as flag:
+        try:
+            for step in steps:
+                show(step)
+                if flag.set:
+                    if stop is not None:
+                        stop(steps)
+                    break
+        except KeyboardInterrupt:
+            flag.set = True
+        finally:
+            steps.close()
+    return flag.set
 
 
 class _SigintFlag:
@@ -368,21 +382,14 @@ def _render_frames(args, scene, layers, opts, cluster=None) -> int:
                              view_layers=layers, compositor=not args.no_compositor, **common)
         job = farm_job.FrameRangeJob(make, frames, lambda f: frame_path(out, f), args.temporal,
                                      method=opts.method, **flags)
-    steps = job.steps()
-    with _SigintFlag() as flag:  # as for one frame: Blender swallows a KeyboardInterrupt in its render
-        try:
-            for step in steps:
-                if isinstance(step, dict):  # a frame finished
-                    _report(step, args.json)
-                elif not args.quiet and step.stage != "render":
-                    print(f"[cycles-adaptive] {100 * step.fraction:5.1f}% {step.message}", flush=True)
-                if flag.set:  # Ctrl-C during a render: stop at its end, through the range's interrupt path
-                    steps.throw(KeyboardInterrupt)
-        except KeyboardInterrupt:
-            flag.set = True
-        finally:
-            steps.close()
-    interrupted = flag.set
+    def show(step):
+        if isinstance(step, dict):  # a frame finished
+            _report(step, args.json)
+        elif not args.quiet and step.stage != "render":
+            print(f"[cycles-adaptive] {100 * step.fraction:5.1f}% {step.message}", flush=True)
+
+    # the range stops through its own interrupt path: the frame in progress is marked 130
+    interrupted = _run_steps(job.steps(), show, stop=lambda steps: steps.throw(KeyboardInterrupt))
     if interrupted:
         print("[cycles-adaptive] interrupted: writing the frame in progress as a partial result",
               file=sys.stderr, flush=True)

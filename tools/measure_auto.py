@@ -17,7 +17,6 @@ from __future__ import annotations
 
 import argparse
 import glob
-import importlib.util
 import json
 import os
 import pickle
@@ -27,18 +26,10 @@ import time
 import numpy as np
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+sys.path.insert(0, ROOT)
+from launch import load_package  # noqa: E402
+
 SCENES = "cornell,dof,soft_shadows,glossy,motion_blur,animated"
-
-
-def load(root: str, name: str):
-    if name in sys.modules:
-        return sys.modules[name]
-    spec = importlib.util.spec_from_file_location(name, os.path.join(root, "__init__.py"),
-                                                  submodule_search_locations=[root])
-    mod = importlib.util.module_from_spec(spec)
-    sys.modules[name] = mod
-    spec.loader.exec_module(mod)
-    return mod
 
 
 def reference(refs: str, scene: str) -> str:
@@ -46,7 +37,7 @@ def reference(refs: str, scene: str) -> str:
 
 
 def dump(a):
-    pkg = load(ROOT, "cycles_adaptive")
+    pkg = load_package("cycles_adaptive", ROOT)
     from cycles_adaptive.core import auto
     from cycles_adaptive.operators import cli
     os.makedirs(a.out, exist_ok=True)
@@ -92,7 +83,7 @@ def bench_truth(path: str) -> dict:
 
 
 def predict(a):
-    load(a.root, "auto_tree")
+    load_package("auto_tree", a.root)
     from auto_tree.core import auto
     from auto_tree.core.io import read_reference
     truth = bench_truth(a.bench) if a.bench else {}
