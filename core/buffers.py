@@ -442,6 +442,22 @@ class Buffers:
             half = Half(half.n, half.color, {k: v for k, v in half.features.items() if k not in names})
         return Buffers(self.n, self.k, self.color, keep, half, self.exponent)
 
+    def crop(self, x0: int, y0: int, x1: int, y1: int) -> "Buffers":
+        """A copy of the rectangle [y0, y1) x [x0, x1) (clipped to the frame)
+        as Buffers of its own: what a method reconstructs when a run measures
+        its cost on part of the frame."""
+        h, w = self.shape
+        x0, x1 = max(0, int(x0)), min(w, int(x1))
+        y0, y1 = max(0, int(y0)), min(h, int(y1))
+        if x1 <= x0 or y1 <= y0:
+            raise ValueError(f"crop ({x0}, {y0}, {x1}, {y1}) is empty in a {w}x{h} frame")
+        sl = (slice(y0, y1), slice(x0, x1))
+        stat = lambda s: Stat(s.mean[sl].copy(), s.m2[sl].copy())
+        half = None if self.half is None else Half(self.half.n[sl].copy(), self.half.color[sl].copy(),
+                                                   {k: v[sl].copy() for k, v in self.half.features.items()})
+        return Buffers(self.n[sl].copy(), self.k[sl].copy(), stat(self.color),
+                       {k: stat(v) for k, v in self.features.items()}, half, self.exponent)
+
     def feature(self, name: str) -> np.ndarray:
         return self.features[name].mean
 

@@ -30,6 +30,8 @@ samples spent beyond the map by rounding up to rectangles.  ``Options.task_cost`
 (pixel-samples) sets it; it is a setting, not a timing measured during the run,
 so a run is deterministic: the same seed and budget give the same tasks and the
 same image, and a resumed run ends exactly where an uninterrupted one does.
+A time limit (``Options.max_seconds``) is the exception: its rounds are sized
+from the run's measured render and reconstruction seconds (``core/timeplan.py``).
 """
 from __future__ import annotations
 
@@ -41,7 +43,7 @@ from dataclasses import asdict, dataclass, field, fields
 
 import numpy as np
 
-from . import cryptomatte, maps, methods, metrics, regions, storage, variance
+from . import cryptomatte, maps, methods, metrics, regions, storage, timeplan, variance
 from .buffers import Buffers
 from .method import Method, check_ranges, consistency_guard, param, params_from_dict
 
@@ -104,7 +106,10 @@ class Options:
     guard_z: float = param(3.0, "final image: a pixel more than this many standard errors from its "
                            "own sample mean falls back to it (0: off); lower trusts the "
                            "reconstruction less", 0.0, None, label="Consistency Guard", soft_max=10.0)
-    max_seconds: float = param(0.0, "stop sampling after this many seconds (0: no limit)", 0.0, None,
+    #: planned from the run's own timings (core/timeplan.py)
+    max_seconds: float = param(0.0, "wall-time limit of the run in seconds (0: none): rounds are sized "
+                               "by what the run's renders cost, long renders split, and time kept for "
+                               "the final reconstruction and the output's write", 0.0, None,
                                label="Time Limit", subtype="TIME_ABSOLUTE")
     #: the loop then checks the estimate before each round and sizes the
     #: round from the fitted convergence (next_target_spp); --spp is the most it renders
@@ -244,8 +249,9 @@ class AdaptiveRun:
         self.budget = int(round(options.spp * self.pixels))
         adaptive = self.method.ADAPTIVE
         spp_int = max(1, int(np.floor(options.spp)))
-        # with a target the budget is a ceiling: every method starts small
-        self.initial_spp = spp_int if not (adaptive or options.target_error > 0) \
+        # with a target the budget is a ceiling, and with a time limit the
+        # first renders measure what a render costs: every method starts small
+        self.initial_spp = spp_int if not (adaptive or options.target_error > 0 or options.max_seconds > 0) \
             else min(options.initial_spp, spp_int)
         self.subsets = max(1, min(options.subsets, self.initial_spp))
         # alpha (Combined.A) rides along as a one-channel pass so nothing is lost
@@ -277,6 +283,20 @@ class AdaptiveRun:
         self.target_met = False             # Options.target_error reached
         self.estimates: list = []           # (spp, estimated relMSE) at each target check
         self._result = None                 # (samples, MethodResult) of the last target check
+        # a time limit (core/timeplan.py): the renders' fitted cost, the final
+        # reconstruction's and a round's measured or estimated seconds, and
+        # what the caller sets aside for its own output (reserve_seconds)
+        self.cost = timeplan.RenderCost()
+        self.reserve_seconds = 0.0
+        #: optional ``probe(buffers) -> seconds``: a time-limited run calls it
+        #: once after the initial pass (as a Work, pure: no bpy) and keeps
+        #: what it returns in reserve_seconds (the job: its output's write)
+        self.reserve_probe = None
+        self.reconstruct_estimate: float | None = None
+        self._round_seconds: float | None = None   # a round's seconds besides its renders
+        self._round_tasks = 0                      # renders of the latest round
+        self._round_samples = 0                    # and its samples
+        self.slices = 0                            # tasks split to fit the limit
 
     # ------------------------------------------------------------- accounting
     @property
@@ -301,12 +321,83 @@ class AdaptiveRun:
         """Seconds since the run's clock started (``started``)."""
         return 0.0 if self.started is None else time.perf_counter() - self.started
 
+    @property
+    def timed(self) -> bool:
+        """The run has a time limit (``Options.max_seconds``)."""
+        return self.options.max_seconds > 0
+
+    def final_reserve(self) -> float:
+        """Seconds the limit keeps for what follows the sampling: the final
+        reconstruction (:attr:`reconstruct_estimate`) and the caller's output
+        (:attr:`reserve_seconds`)."""
+        return float(self.reconstruct_estimate or 0.0) + max(float(self.reserve_seconds), 0.0)
+
     def _time_up(self) -> bool:
-        """``Options.max_seconds`` spent: checked before every task, so the
-        wall time exceeds the limit by at most one task's render."""
-        if self.options.max_seconds and self.elapsed() >= self.options.max_seconds:
+        """``Options.max_seconds`` spent, less :meth:`final_reserve`: checked
+        before every task, so the sampling ends within one task (one slice,
+        :func:`core.timeplan.slice_tasks`) of the limit."""
+        if self.timed and self.elapsed() >= self.options.max_seconds - self.final_reserve():
             self.time_limited = True
         return self.time_limited
+
+    def _time_cap(self, rounds: int) -> tuple:
+        """``(samples, uniform)``: what the next round may render so that it
+        and the ``rounds - 1`` after it fit the time left
+        (``Options.max_seconds`` less :meth:`final_reserve`), each round also
+        paying its adaptation, merges and checkpoint (the latest round's
+        seconds besides its renders, or before any round the
+        reconstruction's estimate when the sampler reads one).  Rounds are
+        dropped until each renders at least as long as it adapts; when not
+        even one such round fits, adapting would cost more than the samples
+        it places, and the round samples uniformly with all the time left
+        (``uniform`` True; only for an adaptive method)."""
+        rounds = max(1, int(rounds))
+        left = self.options.max_seconds - self.elapsed() - self.final_reserve()
+        per_round = self._round_seconds
+        if per_round is None:
+            per_round = float(self.reconstruct_estimate or 0.0) if self.method.SAMPLER_USES_RESULT else 0.0
+        # renders per sample: the latest round's, or the initial pass's
+        initial_rps = len(self.cost) / max(self.samples_rendered, 1)
+        if self._round_tasks and self._round_samples:
+            rps = self._round_tasks / self._round_samples
+        else:
+            rps = initial_rps
+        if self.method.ADAPTIVE and per_round > 0:
+            fit = int(left // (2.0 * per_round))
+            if fit < 1:
+                return self.cost.samples_within(left, initial_rps), True
+            rounds = min(rounds, fit)
+        share = (left - rounds * per_round) / rounds
+        return self.cost.samples_within(share, rps), False
+
+    def _measure_reconstruction(self):
+        """A time-limited run's estimate of the final reconstruction's
+        seconds before any: the method's reconstruction of the frame's centre
+        (a quarter of each side, at least 64 px), timed and scaled by the
+        pixel count (a
+        reconstruction's cost is linear in pixels; its fixed costs scaled
+        with it over-estimate, which ends the sampling early rather than
+        late).  A full reconstruction measured later replaces it."""
+        h, w = self.height, self.width
+        ch, cw = min(h, max(64, h // 4)), min(w, max(64, w // 4))
+        y0, x0 = (h - ch) // 2, (w - cw) // 2
+        whole = (ch, cw) == (h, w)  # a small frame: its reconstruction, kept for the end
+        crop = self.view if whole else self.view.crop(x0, y0, x0 + cw, y0 + ch)
+        samples = self.samples_rendered
+
+        def measure():
+            t0 = time.perf_counter()
+            result = self.method.reconstruct(crop, self.params)
+            seconds = time.perf_counter() - t0
+            self.timing.adapt += seconds
+            if whole:
+                self._result = (samples, result)
+            return seconds * self.pixels / float(ch * cw)
+
+        work = Work(measure, f"timing the reconstruction ({self.method.NAME}) on {cw}x{ch} px",
+                    self.main_thread_only())
+        yield Progress("adapt", 0, self._fraction(), work.label, work=work)
+        self.reconstruct_estimate = work.result()
 
     # ------------------------------------------------------------------ steps
     def steps(self):
@@ -331,6 +422,14 @@ class AdaptiveRun:
             if selects(self.method):
                 yield from self._select()
             yield from self._checkpoint()
+        if self.timed and self.reserve_probe is not None and not self._time_up():
+            probe, buf = self.reserve_probe, self.buffers
+            work = Work(lambda: probe(buf), "timing the output's write")
+            yield Progress("adapt", 0, self._fraction(), work.label, work=work)
+            self.reserve_seconds = float(work.result())
+            self.reserve_probe = None
+        if self.timed and self.reconstruct_estimate is None and not self._time_up():
+            yield from self._measure_reconstruction()
         tol = max(1, int(0.009 * self.budget))  # the total lands within 1 % of the budget
         target = opts.target_error > 0
         while (target or self.iteration < opts.iterations) and self.remaining > tol \
@@ -357,12 +456,34 @@ class AdaptiveRun:
                     budget = self.remaining if last else step
                 else:
                     budget = self.remaining if last else int(self.remaining / left)
-                rendered = yield from self._round(budget, entry)
+                uniform = False
+                if self.timed:  # no more than the time left holds (core/timeplan.py)
+                    cap, uniform = self._time_cap(1 if (last or target) else left)
+                    if uniform:
+                        entry["uniform"] = True
+                        yield Progress("plan", self.iteration, self._fraction(),
+                                       f"iteration {self.iteration + 1}: the time left holds no adaptation "
+                                       f"and the samples it would plan; sampling uniformly")
+                    if cap < budget:
+                        budget = cap
+                    if budget < (self.pixels if uniform else self._smallest_round()):
+                        self.time_limited = True
+                        break
+                t0, rendered_before = time.perf_counter(), self.timing.render
+                samples_before = self.samples_rendered
+                rendered = yield from self._round(budget, entry, uniform)
+                if not uniform:  # what an adaptive round costs besides its renders, and its renders
+                    self._round_seconds = time.perf_counter() - t0 - (self.timing.render - rendered_before)
+                    if rendered:
+                        self._round_tasks, self._round_samples = rendered, self.samples_rendered - samples_before
                 if not rendered:
                     break
             self.history.append(entry)
             self.iteration += 1
+            t0 = time.perf_counter()
             yield from self._checkpoint()
+            if self._round_seconds is not None and not entry.get("uniform"):  # the next round pays one too
+                self._round_seconds += time.perf_counter() - t0
             yield Progress("checkpoint", self.iteration, self._fraction(),
                            f"iteration {self.iteration} done, {self.samples_rendered / self.pixels:.2f} spp")
         self.sampling_seconds = self.elapsed()
@@ -375,12 +496,20 @@ class AdaptiveRun:
                            f"time limit of {opts.max_seconds:g} s reached after {self.elapsed():.2f} s")
         yield Progress("done", self.iteration, self._fraction(), "sampling done")
 
-    def _round(self, budget: int, entry: dict):
+    def _smallest_round(self) -> int:
+        """Fewest samples worth a round of a time-limited run: one sample per
+        pixel for a method that samples uniformly (its rounds are whole
+        sample subsets), a sixteenth of one for an adaptive one."""
+        return self.pixels if not self.method.ADAPTIVE else max(1, self.pixels // 16)
+
+    def _round(self, budget: int, entry: dict, uniform: bool = False):
         """One planning round of the current iteration: adapt (a :class:`Work`),
         plan, render, merge; adds its figures to the iteration's ``entry``.
-        Returns the number of tasks rendered (0: nothing to plan)."""
+        ``uniform``: whole sample subsets without adapting (a time limit's
+        choice, :meth:`_time_cap`).  Returns the number of tasks rendered (0:
+        nothing to plan)."""
         overshoot_before = self.overshoot
-        if not self.method.ADAPTIVE and budget >= self.pixels:
+        if (uniform or not self.method.ADAPTIVE) and budget >= self.pixels:
             # uniform sampling after the initial pass (auto's choice, a target
             # error): whole spp as sample subsets like the initial pass, so the
             # variance estimate keeps groups of comparable size
@@ -396,6 +525,10 @@ class AdaptiveRun:
             tasks, covered, counts = work.result()
         if not tasks:
             return 0
+        if self.timed:  # no task longer than a slice of the limit
+            n = len(tasks)
+            tasks = timeplan.slice_tasks(tasks, self.cost, timeplan.SLICE_SHARE * self.options.max_seconds)
+            self.slices += len(tasks) - n
         before = self.next_index
         tasks, self.next_index = regions.assign_offsets(tasks, self.next_index)
         yield Progress("plan", self.iteration, self._fraction(),
@@ -517,7 +650,10 @@ class AdaptiveRun:
     def _timed_reconstruct(self):
         t0 = time.perf_counter()
         result = self.method.reconstruct(self.view, self.params)
-        self.timing.adapt += time.perf_counter() - t0
+        seconds = time.perf_counter() - t0
+        self.timing.adapt += seconds
+        if self.timed:
+            self.reconstruct_estimate = seconds
         return result
 
     def _select(self):
@@ -598,7 +734,7 @@ class AdaptiveRun:
         """Render one task (the executor: Blender's main thread); (color, features)."""
         t0 = time.perf_counter()
         color, feats = self.executor.render(task)
-        self._count_render(time.perf_counter() - t0)
+        self._count_render(time.perf_counter() - t0, task)
         return color, feats
 
     def _merge_steps(self, task, color, feats, also=None):
@@ -618,7 +754,8 @@ class AdaptiveRun:
         yield Progress("merge", self.iteration, self._fraction(), work.label, work=work)
         work.result()
 
-    def _count_render(self, seconds: float) -> None:
+    def _count_render(self, seconds: float, task) -> None:
+        self.cost.add(task.pixels * task.samples, seconds)
         self._last_render_seconds = seconds
         self.timing.render += seconds
         self.max_task_seconds = max(self.max_task_seconds, seconds)
@@ -654,7 +791,7 @@ class AdaptiveRun:
                 return
             t0 = time.perf_counter()
             color, feats = next(results)
-            self._count_render(time.perf_counter() - t0)
+            self._count_render(time.perf_counter() - t0, task)
             yield from self._merge_steps(task, color, feats)
             yield task
 
@@ -670,7 +807,11 @@ class AdaptiveRun:
         elif self._result is not None and self._result[0] == self.samples_rendered:
             result = self._result[1]
         else:
+            t1 = time.perf_counter()
             result = self.method.reconstruct(self.view, self.params)
+            if self.timed:  # measured: the final one costs as much, or nothing if no sample follows
+                self.reconstruct_estimate = time.perf_counter() - t1
+                self._result = (self.samples_rendered, result)
         planned = self._plan_iteration(result, budget)
         self.timing.adapt += time.perf_counter() - t0
         return planned

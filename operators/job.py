@@ -511,6 +511,8 @@ class RenderJob:
             self.camera = self.executor.camera_info(self.options.frame)
             self.run = AdaptiveRun(self.executor, self.options, checkpoint=self.ckpt, prior=self.prior,
                                    method=self.method, started=self.t0)
+            if self.out and self.options.max_seconds > 0:
+                self.run.reserve_probe = self._time_output
             if self.resume:
                 try:
                     self.run.load_checkpoint(self.ckpt)
@@ -525,6 +527,30 @@ class RenderJob:
         yield Progress("reconstruct", run.iteration, fraction, work.label, work=work)
         if self.out:  # finish() writes next: announced for the batch log and the status bar
             yield Progress("write", run.iteration, fraction, f"writing {self.out}")
+
+    def _time_output(self, buf) -> float:
+        """Seconds the output's EXR is predicted to take to write, for a time
+        limit's reserve: the passes of a band of ``buf``'s rows (an eighth, at
+        least 16) written as the output is, to a temporary file beside it,
+        timed and scaled by the rows.  The preview and the compositor are not
+        included.  Pure (numpy and OpenImageIO): a worker thread may run it."""
+        h, w = buf.shape
+        rows = min(h, max(16, h // 8))
+        y0 = (h - rows) // 2
+        band = buf.crop(0, y0, w, y0 + rows)
+        var = band.variance_of_mean().mean(axis=-1)
+        passes = buffers_to_passes(band, band.color.mean, np.where(np.isfinite(var), var, 0.0))
+        passes["NextIndex"] = np.zeros((rows, w))
+        out = Output(passes, self.layer_name, {}, {}, exr=self.exr)
+        tmp = imageio.temp_beside(self.out, ".exr")
+        try:
+            t0 = time.perf_counter()
+            write_output(out, tmp)
+            seconds = time.perf_counter() - t0
+        finally:
+            if os.path.exists(tmp):
+                os.unlink(tmp)
+        return seconds * h / rows
 
     def reconstruct_work(self) -> Work:
         """The final reconstruction (``AdaptiveRun.reconstruct`` with this
@@ -613,10 +639,17 @@ class RenderJob:
             "max_seconds": self.options.max_seconds,
             "sampling_seconds": run.sampling_seconds,
             "max_task_seconds": run.max_task_seconds,
+        }
+        if run.timed:  # how the limit was planned (core/timeplan.py)
+            overhead, per_sample = run.cost.fit()
+            summary.update({"render_overhead_seconds": overhead, "render_seconds_per_msample": per_sample * 1e6,
+                            "reconstruct_estimate_seconds": float(run.reconstruct_estimate or 0.0),
+                            "reserved_seconds": run.final_reserve(), "sliced_tasks": run.slices})
+        summary.update({
             "reused_samples": int(run.reused.sum()),
             "reprojected_fraction": float((run.reused > 0).mean()),
             "blender": bpy.app.version_string,
-        }
+        })
         _info_fields(summary, result.info)
         _info_fields(summary, run.prior_info, "reproject_")
         if run.selection is not None:  # auto: what it chose, each candidate's prediction, why

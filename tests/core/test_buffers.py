@@ -98,3 +98,24 @@ def test_feature_passes_are_required_in_every_group():
     buf = Buffers.empty(2, 2, ("albedo",))
     with pytest.raises(KeyError):
         buf.merge_group(np.ones((2, 2, 3)), 1, {})
+
+
+def test_crop_is_the_rectangle_of_every_statistic_and_a_copy():
+    from core.buffers import Buffers
+    rng = np.random.default_rng(5)
+    b = Buffers.empty(12, 20, ("albedo", "depth"))
+    for i in range(3):
+        b.merge_group(rng.random((12, 20, 3)), 2 + i, {"albedo": rng.random((12, 20, 3)),
+                                                        "depth": rng.random((12, 20, 1))})
+    b.exponent = 1.3
+    c = b.crop(4, 2, 15, 9)
+    assert c.shape == (7, 11) and c.exponent == 1.3
+    np.testing.assert_array_equal(c.variance_of_mean(), b.variance_of_mean()[2:9, 4:15])
+    np.testing.assert_array_equal(c.feature_variance("depth"), b.feature_variance("depth")[2:9, 4:15])
+    np.testing.assert_array_equal(c.halves()[0][0], b.halves()[0][0][2:9, 4:15])
+    np.testing.assert_array_equal(c.halves()[1][1], b.halves()[1][1][2:9, 4:15])
+    c.color.mean[:] = -1
+    assert (b.color.mean >= 0).all()
+    assert b.crop(-5, -5, 100, 100).shape == b.shape
+    with pytest.raises(ValueError, match="empty"):
+        b.crop(5, 5, 5, 9)

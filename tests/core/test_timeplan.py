@@ -1,0 +1,253 @@
+"""A time limit that plans: the renders' fitted cost, tasks sliced to fit a
+share of the limit, and whole runs on a virtual clock whose renders cost
+``overhead + per_sample * pixel-samples`` and whose reconstruction costs
+seconds per pixel (no wall-clock bound in any test)."""
+import types
+
+import numpy as np
+import pytest
+
+from conftest import FakeExecutor
+from core import methods, regions, timeplan
+from core.buffers import Buffers
+from core.pipeline import AdaptiveRun, Options, merge_render
+from core.timeplan import RenderCost, slice_tasks
+
+
+# ------------------------------------------------------------------ the cost
+def test_fit_recovers_overhead_and_per_sample_cost_leaving_out_the_first_render():
+    cost = RenderCost()
+    cost.add(1000, 30.0)  # the first render also built the scene
+    for n in (1000, 4000, 250, 64000, 9000):
+        cost.add(n, 0.4 + 2e-5 * n)
+    c0, c1 = cost.fit()
+    assert c0 == pytest.approx(0.4, rel=1e-9) and c1 == pytest.approx(2e-5, rel=1e-9)
+    assert cost.predict(10 ** 6) == pytest.approx(0.4 + 20.0, rel=1e-9)
+
+
+def test_one_size_fits_the_ratio_which_over_predicts_larger_renders():
+    cost = RenderCost()
+    for _ in range(4):
+        cost.add(1000, 0.5 + 1e-3 * 1000)
+    c0, c1 = cost.fit()
+    assert c0 == 0.0 and c1 == pytest.approx(1.5e-3)
+    assert cost.predict(8000) >= 0.5 + 1e-3 * 8000  # conservative: time left over, no overrun
+
+
+def test_noise_that_gives_a_negative_term_falls_back_to_the_ratio():
+    cost = RenderCost()
+    for n, t in [(10, 1.0), (100, 3.0), (1000, 2.0), (10000, 0.5)]:  # slower for fewer samples
+        cost.add(n, t)
+    c0, c1 = cost.fit()
+    assert c0 == 0.0 and c1 == pytest.approx((3.0 + 2.0 + 0.5) / 11100)
+
+
+def test_empty_and_hostile_observations():
+    cost = RenderCost()
+    assert cost.fit() == (0.0, 0.0) and cost.samples_within(100.0) == 0
+    for n, t in [(0, 1.0), (10, float("nan")), (10, -1.0), (10, float("inf"))]:
+        cost.add(n, t)
+    assert len(cost) == 0
+    cost.add(100, 1.0)
+    assert cost.samples_within(-5.0) == 0 and cost.samples_within(float("nan")) == 0
+
+
+@pytest.mark.parametrize("seconds,rps", [(10.0, 0.0), (10.0, 1e-3), (0.3, 0.0), (100.0, 1e-2), (0.05, 0.0)])
+def test_samples_within_is_the_inverse_of_the_round_cost(seconds, rps):
+    """n samples in max(1, rps * n) renders: the largest n whose predicted
+    seconds fit."""
+    cost = RenderCost()
+    for n in (500, 5000, 50000):
+        cost.add(n, 0.1 + 1e-4 * n)
+    cost.add(500, 0.1 + 1e-4 * 500)
+    c0, c1 = cost.fit()
+    total = lambda n: c0 * max(1.0, rps * n) + c1 * n
+    n = cost.samples_within(seconds, rps)
+    if seconds <= c0:
+        assert n == 0
+    else:
+        assert total(n) <= seconds + 1e-9 < total(n + 1) + 1e-9
+
+
+# -------------------------------------------------------------------- slices
+def _cost(c0, c1):
+    cost = RenderCost()
+    for n in (100, 100, 1000, 10000):
+        cost.add(n, c0 + c1 * n)
+    return cost
+
+
+def test_slices_fit_the_share_and_keep_rect_samples_and_order():
+    cost = _cost(0.2, 1e-4)
+    tasks = [regions.RegionTask(0, 0, 64, 64, 40), regions.RegionTask(8, 8, 16, 16, 3),
+             regions.RegionTask(0, 0, 64, 32, 90)]
+    out = slice_tasks(tasks, cost, 2.0)
+    assert [t.samples for t in out if t.rect == tasks[1].rect] == [3]  # fits: unchanged
+    for t in tasks:
+        parts = [s for s in out if s.rect == t.rect]
+        assert sum(s.samples for s in parts) == t.samples
+        assert max(s.samples for s in parts) - min(s.samples for s in parts) <= 1
+        if cost.predict(t.pixels * t.samples) > 2.0:
+            assert len(parts) > 1 and all(cost.predict(s.pixels * s.samples) <= 2.0 for s in parts)
+    # in place: the rectangles keep their order
+    rects = [t.rect for t in out]
+    assert [r for i, r in enumerate(rects) if i == 0 or rects[i - 1] != r] == [t.rect for t in tasks]
+
+
+def test_a_slice_holds_at_least_one_sample_and_no_limit_slices_nothing():
+    cost = _cost(0.0, 1.0)  # one sample of a 64x64 task takes 4096 s
+    t = regions.RegionTask(0, 0, 64, 64, 5)
+    assert [s.samples for s in slice_tasks([t], cost, 1.0)] == [1] * 5
+    assert slice_tasks([t], cost, 0.0) == [t]
+    assert slice_tasks([t], RenderCost(), 1.0) == [t]
+
+
+def test_sliced_tasks_merge_into_the_unsliced_render():
+    """Slices get consecutive offsets (assign_offsets), so the merged mean is
+    the one render's: same samples, same image."""
+    truth = np.random.default_rng(3).random((16, 24, 3)) + 0.1
+    task = regions.RegionTask(4, 2, 20, 14, 23)
+    whole, sliced = [Buffers.empty(16, 24, ("alpha",)) for _ in range(2)]
+    nxt = np.full((16, 24), 5, np.int64)
+    for buf, tasks in ((whole, [task]), (sliced, slice_tasks([task], _cost(0.0, 1e-3), 1.0))):
+        tasks, _ = regions.assign_offsets(tasks, nxt)
+        ex = FakeExecutor(truth)
+        for t in tasks:
+            merge_render(buf, t, *ex.render(t))
+    assert len(tasks) > 1 and [t.offset for t in tasks] == list(np.cumsum([5] + [t.samples for t in tasks])[:-1])
+    np.testing.assert_array_equal(whole.n, sliced.n)
+    np.testing.assert_allclose(sliced.color.mean, whole.color.mean, rtol=1e-12, atol=1e-14)
+
+
+# ------------------------------------------------------- runs on a virtual clock
+class _Clock:
+    def __init__(self):
+        self.now = 1000.0
+
+    def __call__(self):
+        return self.now
+
+
+class CostExecutor(FakeExecutor):
+    """Each render advances the clock by overhead + per_sample * pixel-samples."""
+
+    def __init__(self, truth, clock, overhead, per_sample):
+        h, w = truth.shape[:2]
+        xx = np.mgrid[0:h, 0:w][1]
+        super().__init__(truth, {"albedo": np.where(truth > 1.0, 0.8, 0.3),
+                                 "normal": np.dstack([np.zeros((h, w)), np.zeros((h, w)), np.ones((h, w))]),
+                                 "depth": (2.0 + 0.01 * xx)[..., None]})
+        self.clock, self.overhead, self.per_sample = clock, overhead, per_sample
+
+    def render(self, task):
+        self.clock.now += self.overhead + self.per_sample * task.pixels * task.samples
+        return super().render(task)
+
+
+class SlowReconstruction:
+    """A registered method whose reconstruction takes ``per_pixel`` seconds a
+    pixel on the clock (everything else is the method's own)."""
+
+    def __init__(self, name, clock, per_pixel):
+        self._m, self._clock, self._per_pixel = methods.method_for(name, {}), clock, per_pixel
+
+    def __getattr__(self, attr):
+        return getattr(self._m, attr)
+
+    def reconstruct(self, buffers, params):
+        self._clock.now += self._per_pixel * buffers.n.size
+        return self._m.reconstruct(buffers, params)
+
+
+def _truth(h, w):
+    t = np.full((h, w, 3), 0.2)
+    t[: h // 2, : w // 3] = 2.0
+    return t
+
+
+def _timed(monkeypatch, method="var", limit=20.0, spp=400, overhead=0.05, per_sample=1e-4,
+           recon_per_pixel=0.0, shape=(32, 48), **kw):
+    import core.pipeline as pipeline
+    clock = _Clock()
+    monkeypatch.setattr(pipeline, "time", types.SimpleNamespace(perf_counter=clock))
+    ex = CostExecutor(_truth(*shape), clock, overhead, per_sample)
+    opts = dict(method=method, spp=spp, initial_spp=4, subsets=4, iterations=4, task_cost=64,
+                min_task_size=4, max_seconds=limit)
+    opts.update(kw)
+    m = SlowReconstruction(method, clock, recon_per_pixel) if recon_per_pixel else None
+    run = AdaptiveRun(ex, Options(**opts), method=m, started=clock.now)
+    steps = list(run.steps())
+    run.reconstruct()
+    return run, ex, clock, steps
+
+
+@pytest.mark.parametrize("method", ["uniform", "var", "awr"])
+@pytest.mark.parametrize("limit", [3.0, 20.0])
+def test_the_limit_bounds_the_wall_time_within_a_slice(monkeypatch, method, limit):
+    """A budget ~8x what the limit holds: the run ends within a slice of the
+    limit (5 % of it plus one render's overhead), the final reconstruction
+    included, and uses most of it."""
+    run, ex, clock, _ = _timed(monkeypatch, method, limit, recon_per_pixel=2e-4)
+    wall = run.elapsed()
+    assert run.time_limited and run.samples_rendered < run.budget
+    assert wall <= limit * (1 + timeplan.SLICE_SHARE) + ex.overhead, (wall, limit)
+    assert wall >= 0.75 * limit, (wall, limit)
+    per_task = [ex.overhead + ex.per_sample * t.pixels * t.samples for t in ex.tasks[1:]]
+    assert max(per_task) <= max(timeplan.SLICE_SHARE * limit, ex.overhead + ex.per_sample * run.pixels) + 1e-9
+
+
+def test_a_uniform_method_no_longer_renders_its_budget_in_one_pass(monkeypatch):
+    """Without the plan, uniform rendered its whole budget as the initial
+    pass's subsets: one subset took ~8x the limit."""
+    run, ex, clock, _ = _timed(monkeypatch, "uniform", 3.0)
+    assert ex.tasks[0].samples <= 4 and len(ex.tasks) > 4
+    assert (run.buffers.n == run.buffers.n.flat[0]).all()  # still uniform: whole sample subsets
+
+
+def test_a_reconstruction_longer_than_the_time_left_is_not_paid_twice(monkeypatch):
+    """LP-like: the sampler reconstructs every round.  When the time left
+    cannot hold a round's reconstruction and the final one, the run stops
+    after the initial pass, and the reconstruction that measured the cost
+    (the whole of this small frame) is the final one: paid once, 0.8 + 1.5 s
+    (twice would end at 3.8 s)."""
+    pixels = 32 * 48
+    run, ex, clock, _ = _timed(monkeypatch, "lp", 3.0, recon_per_pixel=1.5 / pixels)
+    assert run.time_limited and run.iteration == 0
+    assert run.elapsed() <= 3.0 * (1 + timeplan.SLICE_SHARE)
+    assert run.reconstruct_estimate == pytest.approx(1.5, rel=0.05)
+
+
+def test_a_loose_limit_changes_nothing_for_an_adaptive_method(monkeypatch):
+    """A limit the budget fits in: the same tasks and image as no limit."""
+    a, ex_a, _, _ = _timed(monkeypatch, "var", 0.0, spp=16)
+    b, ex_b, _, _ = _timed(monkeypatch, "var", 1e6, spp=16)
+    assert not b.time_limited
+    assert [t for t in ex_a.tasks] == [t for t in ex_b.tasks]
+    np.testing.assert_array_equal(a.buffers.color.mean, b.buffers.color.mean)
+
+
+def test_reserve_probe_is_called_once_and_kept(monkeypatch):
+    import core.pipeline as pipeline
+    clock = _Clock()
+    monkeypatch.setattr(pipeline, "time", types.SimpleNamespace(perf_counter=clock))
+    ex = CostExecutor(_truth(32, 48), clock, 0.05, 1e-4)
+    run = AdaptiveRun(ex, Options(method="var", spp=400, initial_spp=4, max_seconds=10.0), started=clock.now)
+    seen = []
+    run.reserve_probe = lambda buf: seen.append(buf.n.copy()) or 2.5
+    list(run.steps())
+    assert len(seen) == 1 and (seen[0] == 4).all()
+    assert run.reserve_seconds == 2.5 and run.final_reserve() >= 2.5
+    assert run.elapsed() <= 10.0 - 2.5 + timeplan.SLICE_SHARE * 10.0 + ex.overhead
+
+
+def test_an_adaptation_longer_than_the_samples_it_would_place_gives_a_uniform_round(monkeypatch):
+    """LP-like: the time left after the initial pass holds less than two
+    reconstructions (one to adapt, the samples it would place); the round
+    samples uniformly with that time instead of adapting."""
+    pixels = 32 * 48
+    run, ex, clock, steps = _timed(monkeypatch, "lp", 6.0, recon_per_pixel=1.5 / pixels)
+    assert run.history and run.history[0].get("uniform") is True
+    assert any("sampling uniformly" in s.message for s in steps)
+    assert run.samples_rendered > 4 * pixels and (run.buffers.n == run.buffers.n.flat[0]).all()
+    assert run.elapsed() <= 6.0 * (1 + timeplan.SLICE_SHARE) + ex.overhead
+    assert run.elapsed() >= 0.75 * 6.0
