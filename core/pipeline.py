@@ -340,6 +340,16 @@ class AdaptiveRun:
             self.time_limited = True
         return self.time_limited
 
+    def _would_overrun(self, task) -> bool:
+        """A time-limited run's ``task`` is predicted (:attr:`cost`) to end
+        more than a slice (``timeplan.SLICE_SHARE`` of the limit) past what
+        the limit leaves for sampling: the initial pass's full-frame subsets,
+        which are not sliced, stop before such a one."""
+        if not self.timed or not len(self.cost):
+            return False
+        end = self.elapsed() + self.cost.predict(task.pixels * task.samples)
+        return end > self.options.max_seconds * (1.0 + timeplan.SLICE_SHARE) - self.final_reserve()
+
     def _time_cap(self, rounds: int) -> tuple:
         """``(samples, uniform)``: what the next round may render so that it
         and the ``rounds - 1`` after it fit the time left
@@ -369,6 +379,23 @@ class AdaptiveRun:
             rounds = min(rounds, fit)
         share = (left - rounds * per_round) / rounds
         return self.cost.samples_within(share, rps), False
+
+    def _measure_reserves(self):
+        """A time-limited run's :meth:`final_reserve`, measured once: the
+        caller's ``reserve_probe`` (its output's write) and the final
+        reconstruction's estimate (:meth:`_measure_reconstruction`; a
+        selecting method's after its choice).  The initial pass calls it after
+        its first subset, so the subsets that follow are planned with it."""
+        if not self.timed:
+            return
+        if self.reserve_probe is not None:
+            probe, buf = self.reserve_probe, self.buffers
+            self.reserve_probe = None
+            work = Work(lambda: probe(buf), "timing the output's write")
+            yield Progress("adapt", 0, self._fraction(), work.label, work=work)
+            self.reserve_seconds = float(work.result())
+        if self.reconstruct_estimate is None and not selects(self.method):
+            yield from self._measure_reconstruction()
 
     def _measure_reconstruction(self):
         """A time-limited run's estimate of the final reconstruction's
@@ -422,14 +449,8 @@ class AdaptiveRun:
             if selects(self.method):
                 yield from self._select()
             yield from self._checkpoint()
-        if self.timed and self.reserve_probe is not None and not self._time_up():
-            probe, buf = self.reserve_probe, self.buffers
-            work = Work(lambda: probe(buf), "timing the output's write")
-            yield Progress("adapt", 0, self._fraction(), work.label, work=work)
-            self.reserve_seconds = float(work.result())
-            self.reserve_probe = None
-        if self.timed and self.reconstruct_estimate is None and not self._time_up():
-            yield from self._measure_reconstruction()
+        if not self._time_up():
+            yield from self._measure_reserves()
         tol = max(1, int(0.009 * self.budget))  # the total lands within 1 % of the budget
         target = opts.target_error > 0
         while (target or self.iteration < opts.iterations) and self.remaining > tol \
@@ -563,7 +584,8 @@ class AdaptiveRun:
         self._cv = [[] for _ in crops]
         last = tasks[0]
         for s, task in enumerate(tasks):
-            if s and self._time_up():  # one subset at least, so there is an image
+            if s and (self._time_up() or self._would_overrun(task)):  # one subset at least: an image
+                self.time_limited = True
                 break
             color, feats = self._render(task)
             self._initial_seconds.append(self._last_render_seconds)
@@ -580,6 +602,8 @@ class AdaptiveRun:
             yield Progress("initial", 0, self._fraction(),
                            f"initial pass: subset {s + 1}/{len(tasks)} ({task.samples} spp)",
                            s + 1, len(tasks))
+            if s == 0 and len(tasks) > 1:  # the subsets that follow fit what the output needs
+                yield from self._measure_reserves()
         self.next_index[:] = last.offset + last.samples
         # the sequence's stratification, measured once on the equal subsets (core/variance.py)
         work = Work(lambda: meter.exponent(self.buffers), "initial pass: measuring the noise's convergence")

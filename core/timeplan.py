@@ -97,25 +97,32 @@ class RenderCost:
 
 def slice_tasks(tasks, cost: RenderCost, seconds: float) -> list:
     """``tasks`` with each one predicted (``cost``) to take longer than
-    ``seconds`` split into consecutive sample slices of its rectangle, as
-    many as make each slice fit (at most one per sample), in place of it:
-    the order, and so the offsets :func:`core.regions.assign_offsets` gives,
-    are those of the unsliced tasks.  ``seconds <= 0`` or an empty cost:
-    ``tasks`` unchanged."""
-    out = []
+    ``seconds`` split, in place of it, into consecutive sample slices of its
+    rectangle (as many as make each slice fit, at most one per sample), and
+    a slice that still does not fit (one sample over a large region) into
+    bands of rows, top to bottom.  The order, and so the offsets
+    :func:`core.regions.assign_offsets` gives, continue each pixel's sequence
+    as the unsliced task would: a band's rows start where the slice before
+    ended.  ``seconds <= 0`` or an empty cost: ``tasks`` unchanged."""
     if seconds <= 0 or not len(cost):
         return list(tasks)
     c0, c1 = cost.fit()
-    per_slice = max(float(seconds) - c0, 0.0)
+    fits = max(float(seconds) - c0, 0.0) / c1 if c1 > 0 else 0.0  # pixel-samples a render may hold
+    out = []
     for t in tasks:
-        pred = cost.predict(t.pixels * t.samples)
-        if pred <= seconds or t.samples < 2:
+        if cost.predict(t.pixels * t.samples) <= seconds:
             out.append(t)
             continue
-        # each slice pays the overhead again: slices whose samples fit the rest
-        fit = int(per_slice / (c1 * t.pixels)) if c1 > 0 and per_slice > 0 else 1
-        parts = min(t.samples, max(2, math.ceil(t.samples / max(fit, 1))))
+        per_pixel = int(fits / t.pixels)  # samples of the whole rectangle that fit one render
+        parts = min(t.samples, max(2, math.ceil(t.samples / max(per_pixel, 1))))
         base, extra = divmod(int(t.samples), parts)
         for i in range(parts):
-            out.append(replace(t, samples=base + (1 if i < extra else 0)))
+            piece = replace(t, samples=base + (1 if i < extra else 0))
+            rows = int(fits / max(piece.samples * piece.width, 1))
+            if per_pixel >= 1 or rows >= piece.height:
+                out.append(piece)
+                continue
+            rows = max(rows, 1)  # one row at least: a render of one row is the smallest band
+            out.extend(replace(piece, y0=y, y1=min(y + rows, piece.y1))
+                       for y in range(piece.y0, piece.y1, rows))
     return out

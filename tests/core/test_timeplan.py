@@ -97,7 +97,8 @@ def test_slices_fit_the_share_and_keep_rect_samples_and_order():
 def test_a_slice_holds_at_least_one_sample_and_no_limit_slices_nothing():
     cost = _cost(0.0, 1.0)  # one sample of a 64x64 task takes 4096 s
     t = regions.RegionTask(0, 0, 64, 64, 5)
-    assert [s.samples for s in slice_tasks([t], cost, 1.0)] == [1] * 5
+    out = slice_tasks([t], cost, 1.0)  # one row of one sample is the smallest render
+    assert len(out) == 5 * 64 and all(s.samples == 1 and s.height == 1 and s.width == 64 for s in out)
     assert slice_tasks([t], cost, 0.0) == [t]
     assert slice_tasks([t], RenderCost(), 1.0) == [t]
 
@@ -201,7 +202,11 @@ def test_a_uniform_method_no_longer_renders_its_budget_in_one_pass(monkeypatch):
     pass's subsets: one subset took ~8x the limit."""
     run, ex, clock, _ = _timed(monkeypatch, "uniform", 3.0)
     assert ex.tasks[0].samples <= 4 and len(ex.tasks) > 4
-    assert (run.buffers.n == run.buffers.n.flat[0]).all()  # still uniform: whole sample subsets
+    # still uniform: whole-frame sample slices, cut into row bands where one
+    # sample over the frame exceeds a slice; a stop between bands leaves
+    # whole rows one sample ahead
+    n = run.buffers.n
+    assert (n == n[:, :1]).all() and np.ptp(n) <= 1
 
 
 def test_a_reconstruction_longer_than_the_time_left_is_not_paid_twice(monkeypatch):
@@ -235,7 +240,7 @@ def test_reserve_probe_is_called_once_and_kept(monkeypatch):
     seen = []
     run.reserve_probe = lambda buf: seen.append(buf.n.copy()) or 2.5
     list(run.steps())
-    assert len(seen) == 1 and (seen[0] == 4).all()
+    assert len(seen) == 1 and (seen[0] == 1).all()  # after the first subset, before the others
     assert run.reserve_seconds == 2.5 and run.final_reserve() >= 2.5
     assert run.elapsed() <= 10.0 - 2.5 + timeplan.SLICE_SHARE * 10.0 + ex.overhead
 
@@ -251,3 +256,39 @@ def test_an_adaptation_longer_than_the_samples_it_would_place_gives_a_uniform_ro
     assert run.samples_rendered > 4 * pixels and (run.buffers.n == run.buffers.n.flat[0]).all()
     assert run.elapsed() <= 6.0 * (1 + timeplan.SLICE_SHARE) + ex.overhead
     assert run.elapsed() >= 0.75 * 6.0
+
+
+def test_a_one_sample_task_too_long_for_the_slice_is_cut_into_row_bands():
+    """A render of one sample over a large region cannot be split in samples:
+    it becomes bands of rows that each fit, cover the rectangle once, and
+    merge into the unsliced render."""
+    cost = _cost(0.0, 1e-3)  # 1 s holds 1000 pixel-samples
+    task = regions.RegionTask(2, 3, 42, 30, 1)  # 40 x 27 = 1080 pixel-samples per sample
+    two = regions.RegionTask(2, 3, 42, 30, 2)
+    out = slice_tasks([task], cost, 0.5)
+    assert len(out) > 1 and all(t.samples == 1 and t.x0 == 2 and t.x1 == 42 for t in out)
+    assert all(cost.predict(t.pixels * t.samples) <= 0.5 for t in out)
+    assert [t.y0 for t in out] == sorted(t.y0 for t in out) and out[0].y0 == 3 and out[-1].y1 == 30
+    assert all(a.y1 == b.y0 for a, b in zip(out, out[1:]))
+    truth = np.random.default_rng(4).random((32, 48, 3)) + 0.1
+    nxt = np.zeros((32, 48), np.int64)
+    nxt[3:30, 2:42] = 7
+    for t_in in (task, two):
+        whole, cut = [Buffers.empty(32, 48, ("alpha",)) for _ in range(2)]
+        sliced = slice_tasks([t_in], cost, 0.5)
+        for buf, ts in ((whole, [t_in]), (cut, sliced)):
+            ts, after = regions.assign_offsets(ts, nxt)
+            ex = FakeExecutor(truth)
+            for t in ts:
+                merge_render(buf, t, *ex.render(t))
+        np.testing.assert_array_equal(whole.n, cut.n)
+        np.testing.assert_allclose(cut.color.mean, whole.color.mean, rtol=1e-12, atol=1e-14)
+        assert (after[3:30, 2:42] == 7 + t_in.samples).all()
+
+
+def test_the_initial_pass_stops_before_a_subset_predicted_past_the_limit(monkeypatch):
+    """Full-frame subsets of 2 s each under a 3 s limit: the second would
+    end at 4 s, so the pass keeps one (an image) and stops."""
+    run, ex, clock, _ = _timed(monkeypatch, "var", 3.0, overhead=0.0, per_sample=2.0 / (32 * 48))
+    assert run.time_limited and len(ex.tasks) == 1
+    assert run.elapsed() <= 3.0
