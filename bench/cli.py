@@ -82,9 +82,10 @@ def add_arguments(p) -> None:
     p.add_argument("--max-samples-factor", type=int, default=None, help="Cycles adaptive sampling "
                    "peer: max samples = this x the largest budget, the threshold decides the rest "
                    "(default 16; --quick: 8)")
-    p.add_argument("--run-max-seconds", type=float, default=60.0, help="time budget of one run of "
-                   "our loop (Options.max_seconds): a run that reaches it stops sampling early, is "
-                   "flagged partial and keeps the samples it has (default 60; 0: none)")
+    p.add_argument("--run-max-seconds", type=float, default=60.0, help="safety cap of one run of "
+                   "our loop: a run that reaches it is stopped like a cancel (between two steps), is "
+                   "flagged partial and keeps the samples it has (default 60; 0: none); not the "
+                   "planned --max-seconds of render, which would change what is measured")
     p.add_argument("--seed", type=int, default=0, help="Cycles seed of the runs (not the references')")
     p.add_argument("--json", action="store_true", help="print one JSON object as the last line")
 

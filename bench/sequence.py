@@ -485,7 +485,8 @@ def add_arguments(p) -> None:
     p.add_argument("--max-samples-factor", type=int, default=16,
                    help="Cycles adaptive peer's max samples = this x the budget (default 16)")
     p.add_argument("--run-max-seconds", type=float, default=0.0,
-                   help="stop a frame's sampling after this many seconds (0: never)")
+                   help="time limit of each frame (render's --max-seconds, planned from the run's "
+                        "timings: changes what the run renders; 0: none)")
     p.add_argument("--out", default=DEFAULT_OUT, help="output folder (default bench_out/sequence)")
     p.add_argument("--json", action="store_true", help="print one JSON object as the last line")
 

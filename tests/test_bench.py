@@ -620,3 +620,40 @@ def test_auto_and_oidn_targets_without_runs_say_so():
     from cycles_adaptive.bench import targets
     for t in targets.auto_targets({}) + targets.oidn_targets({}):
         assert t["met"] is None and t["detail"] and t["detail"][0].startswith("no ")
+
+
+def test_the_runs_safety_cap_stops_like_a_cancel_and_keeps_the_samples(monkeypatch):
+    """--run-max-seconds closes the run between two steps (nothing planned
+    from timings): the samples merged so far stay, and without the cap the
+    run is the plain one."""
+    import types
+    from cycles_adaptive.bench import session
+    from cycles_adaptive.core import pipeline
+    from cycles_adaptive.core.pipeline import AdaptiveRun, Options
+
+    class Executor:  # each render moves the fake clock by 1 s
+        size = (8, 12)
+
+        def __init__(self, clock):
+            self.clock, self.tasks = clock, []
+
+        def render(self, task):
+            self.clock[0] += 1.0
+            self.tasks.append(task)
+            h, w = task.y1 - task.y0, task.x1 - task.x0
+            return np.full((h, w, 4), 0.5), {}
+
+    clock = [0.0]
+    fake = types.SimpleNamespace(perf_counter=lambda: clock[0])
+    monkeypatch.setattr(session, "time", fake)
+    monkeypatch.setattr(pipeline, "time", fake)
+    opts = dict(method="var", spp=64, initial_spp=4, subsets=4, task_cost=0, min_task_size=4)
+    ex = Executor(clock)
+    run = AdaptiveRun(ex, Options(**opts))
+    assert session._run_capped(run, 5.5) is True
+    assert len(ex.tasks) == 6 and run.tasks_rendered == 6 and not run.time_limited
+    assert run.buffers.n.sum() == sum(t.pixels * t.samples for t in ex.tasks)
+    ex2 = Executor(clock)
+    full = AdaptiveRun(ex2, Options(**opts))
+    assert session._run_capped(full, 0.0) is False
+    assert abs(full.samples_rendered - 64 * 96) <= 0.01 * 64 * 96 + 1
