@@ -13,6 +13,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from . import parallel
+
 __all__ = [
     "box_count",
     "box_sum",
@@ -32,6 +34,11 @@ __all__ = [
 VALUE_LIMIT = 1e30
 #: Largest variance accepted (VALUE_LIMIT ** 2).
 VAR_LIMIT = 1e60
+#: Frames below this many pixels run the row strips of ``nlm_filter`` and
+#: ``guided_filter_mean`` on the calling thread; larger ones on
+#: :mod:`core.parallel`'s pool (strips are cut by the shape only and each
+#: writes only its own rows: the same bits for any thread count).
+THREAD_MIN_PIXELS = 1 << 16
 
 
 def _finite(x, limit=VALUE_LIMIT, fill=0.0, dtype=np.float64):
@@ -281,7 +288,10 @@ def guided_filter_mean(p: np.ndarray, guides: np.ndarray, radius: int, eps: floa
     pc = p.mean(axis=(0, 1)) if p.size else np.zeros(c)
     out = np.empty_like(p)
     rows = max(1, int(chunk_pixels) // max(1, w))
-    for y0 in range(0, h, rows):
+
+    def strip(y0):
+        # one strip, written to its own output rows (strips run on
+        # core.parallel's threads; cut by the shape only: same bits)
         y1 = min(h, y0 + rows)
         a0, b0 = max(0, y0 - 2 * r), min(h, y1 + 2 * r)
         I = g[a0:b0] - gc
@@ -297,6 +307,8 @@ def guided_filter_mean(p: np.ndarray, guides: np.ndarray, radius: int, eps: floa
         ma = box_mean(a.reshape(hh, w, G * c), r).reshape(hh, w, G, c)
         q = ((ma * I[..., None]).sum(axis=2) + box_mean(bsum, r)) / G + pc
         out[y0:y1] = q[y0 - a0:y1 - a0]
+
+    parallel.run_bands(lambda band: strip(band[0]), h, rows, THREAD_MIN_PIXELS, w)
     return np.clip(out, -VALUE_LIMIT, VALUE_LIMIT, out=out)
 
 
@@ -373,7 +385,9 @@ def nlm_filter(values, variances, k: float, radius: int, patch_radius: int,
         with its own patch distance (Liu et al. Sec. 3.2, features).
     eps : float, epsilon of Eq. 5 (Rousselle et al. 2013: 1e-10).
     chunk_pixels : int, rows are processed in strips of about this many pixels
-        (bounds temporaries and keeps them in cache; results do not depend on it).
+        (bounds temporaries and keeps them in cache; results do not depend on
+        it); frames of ``THREAD_MIN_PIXELS`` or more run the strips on
+        :mod:`core.parallel`'s pool (same bits for any thread count).
     dtype : float64 (default) or float32 for the distances and weights (about
         twice as fast; the caller must keep values within float32 range --
         inputs are clipped to +-1e15 and variances to 1e30 in that case, and
@@ -409,16 +423,25 @@ def nlm_filter(values, variances, k: float, radius: int, patch_radius: int,
     inv2sr = 1.0 / (2.0 * max(float(sigma_r), 1e-12) ** 2)
     mean_w = np.full(c, 1.0 / c, dtype)
     cw = c if channelwise else 1
-    with np.errstate(over="ignore", invalid="ignore", divide="ignore"):
-        _nlm_strips(y, v, g, ginv if g is not None else None, out := np.empty((h, w, c)),
-                    r, pr, k2, epsd, inv2sr, sigma_s, mean_w, channelwise, cw, dtype,
-                    max(1, int(chunk_pixels) // max(1, w)))
+    out = np.empty((h, w, c))
+    rows = max(1, int(chunk_pixels) // max(1, w))
+
+    def strip(y0):
+        with np.errstate(over="ignore", invalid="ignore", divide="ignore"):
+            _nlm_strip(y, v, g, ginv if g is not None else None, out, r, pr, k2, epsd, inv2sr,
+                       sigma_s, mean_w, channelwise, cw, dtype, rows, y0)
+
+    # strips are independent (each writes only its own output rows) and cut
+    # by the shape only: same bits on any number of threads
+    parallel.run_bands(lambda band: strip(band[0]), h, rows, THREAD_MIN_PIXELS, w)
     return out[..., 0] if squeeze else out
 
 
-def _nlm_strips(y, v, g, ginv, out, r, pr, k2, epsd, inv2sr, sigma_s, mean_w, channelwise, cw,
-                dtype, rows):
-    """Row-strip loop of ``nlm_filter`` (loops over strips and offsets only).
+def _nlm_strip(y, v, g, ginv, out, r, pr, k2, epsd, inv2sr, sigma_s, mean_w, channelwise, cw,
+               dtype, rows, y0):
+    """One row strip [y0, y0 + rows) of ``nlm_filter`` (loops over offsets
+    only), written to ``out``; its own scratch buffer, so strips can run on
+    :mod:`core.parallel`'s threads.
 
     Weighted sums are accumulated in float64 for float64 input and in float32
     for float32 input (at most (2r+1)^2 terms in [0, 1]: relative error < 1e-5).
@@ -426,72 +449,71 @@ def _nlm_strips(y, v, g, ginv, out, r, pr, k2, epsd, inv2sr, sigma_s, mean_w, ch
     h, w, c = y.shape
     L = 2 * pr + 1
     buf_full = np.zeros((min(h, rows + 2 * pr) + 2 * pr, w + 2 * pr, cw), dtype)
-    for y0 in range(0, h, rows):
-        y1 = min(h, y0 + rows)
-        ea, eb = max(0, y0 - pr), min(h, y1 + pr)
-        num = np.zeros((y1 - y0, w, c), dtype)
-        den = np.zeros((y1 - y0, w, cw), dtype)
-        for dy in range(-r, r + 1):
-            ra, rb = max(ea, -dy), min(eb, h - dy)
-            oa, ob = max(y0, ra), min(y1, rb)
-            if ra >= rb or oa >= ob:
+    y1 = min(h, y0 + rows)
+    ea, eb = max(0, y0 - pr), min(h, y1 + pr)
+    num = np.zeros((y1 - y0, w, c), dtype)
+    den = np.zeros((y1 - y0, w, cw), dtype)
+    for dy in range(-r, r + 1):
+        ra, rb = max(ea, -dy), min(eb, h - dy)
+        oa, ob = max(y0, ra), min(y1, rb)
+        if ra >= rb or oa >= ob:
+            continue
+        R = rb - ra
+        cnt_y = box_count(R, pr)[oa - ra:ob - ra]
+        for dx in range(-r, r + 1):
+            ca, cb = max(0, -dx), min(w, w - dx)
+            if ca >= cb:
                 continue
-            R = rb - ra
-            cnt_y = box_count(R, pr)[oa - ra:ob - ra]
-            for dx in range(-r, r + 1):
-                ca, cb = max(0, -dx), min(w, w - dx)
-                if ca >= cb:
-                    continue
-                Wc = cb - ca
-                # zero-bordered buffer holding d over the rectangle (Eq. 5)
-                buf = buf_full[:R + 2 * pr, :Wc + 2 * pr]
-                if pr:
-                    buf[:pr] = 0
-                    buf[R + pr:] = 0
-                    buf[:, :pr] = 0
-                    buf[:, Wc + pr:] = 0
-                yq = y[ra + dy:rb + dy, ca + dx:cb + dx]
-                vp, vq = v[ra:rb, ca:cb], v[ra + dy:rb + dy, ca + dx:cb + dx]
-                d = y[ra:rb, ca:cb] - yq
-                d *= d
-                m = np.minimum(vp, vq)
-                m += vp
-                d -= m
-                m = np.add(vp, vq, out=m)
-                m *= k2
-                m += epsd
-                d /= m
-                if channelwise:
-                    np.minimum(d, D_CLIP, out=buf[pr:pr + R, pr:pr + Wc])
-                else:
-                    np.matmul(d, mean_w, out=buf[pr:pr + R, pr:pr + Wc, 0])
-                    np.minimum(buf, D_CLIP, out=buf)
-                # Eq. 4: patch sums (box filter) for the output rows only
-                ps = _window_sums(buf, L, 0, oa - ra, ob - ra)
-                ps = _window_sums(ps, L, 1, 0, Wc)
-                # -max(P, 0) / (2 sigma_r^2) = min(P * scale, 0) with scale < 0
-                scale = (-inv2sr / np.outer(cnt_y, box_count(Wc, pr))).astype(dtype)
-                ps *= scale[..., None]
-                np.minimum(ps, 0, out=ps)
-                # spatial and joint-feature terms: one channel, shared by all
-                lj = None
-                if g is not None:
-                    gd = g[oa:ob, ca:cb] - g[oa + dy:ob + dy, ca + dx:cb + dx]
-                    gd *= gd
-                    lj = gd @ ginv
-                if sigma_s > 0:
-                    sp = dtype.type((dy * dy + dx * dx) / (2.0 * sigma_s * sigma_s))
-                    lj = sp if lj is None else np.add(lj, sp, out=lj)
-                if lj is not None:
-                    ps -= lj[..., None] if np.ndim(lj) else lj
-                wgt = np.exp(ps, out=ps)
-                den[oa - y0:ob - y0, ca:cb] += wgt
-                if cw == c:
-                    wgt *= yq[oa - ra:ob - ra]
-                    num[oa - y0:ob - y0, ca:cb] += wgt
-                else:
-                    num[oa - y0:ob - y0, ca:cb] += wgt * yq[oa - ra:ob - ra]
-        out[y0:y1] = num / np.maximum(den, 1e-30 if dtype == np.float32 else 1e-300)
+            Wc = cb - ca
+            # zero-bordered buffer holding d over the rectangle (Eq. 5)
+            buf = buf_full[:R + 2 * pr, :Wc + 2 * pr]
+            if pr:
+                buf[:pr] = 0
+                buf[R + pr:] = 0
+                buf[:, :pr] = 0
+                buf[:, Wc + pr:] = 0
+            yq = y[ra + dy:rb + dy, ca + dx:cb + dx]
+            vp, vq = v[ra:rb, ca:cb], v[ra + dy:rb + dy, ca + dx:cb + dx]
+            d = y[ra:rb, ca:cb] - yq
+            d *= d
+            m = np.minimum(vp, vq)
+            m += vp
+            d -= m
+            m = np.add(vp, vq, out=m)
+            m *= k2
+            m += epsd
+            d /= m
+            if channelwise:
+                np.minimum(d, D_CLIP, out=buf[pr:pr + R, pr:pr + Wc])
+            else:
+                np.matmul(d, mean_w, out=buf[pr:pr + R, pr:pr + Wc, 0])
+                np.minimum(buf, D_CLIP, out=buf)
+            # Eq. 4: patch sums (box filter) for the output rows only
+            ps = _window_sums(buf, L, 0, oa - ra, ob - ra)
+            ps = _window_sums(ps, L, 1, 0, Wc)
+            # -max(P, 0) / (2 sigma_r^2) = min(P * scale, 0) with scale < 0
+            scale = (-inv2sr / np.outer(cnt_y, box_count(Wc, pr))).astype(dtype)
+            ps *= scale[..., None]
+            np.minimum(ps, 0, out=ps)
+            # spatial and joint-feature terms: one channel, shared by all
+            lj = None
+            if g is not None:
+                gd = g[oa:ob, ca:cb] - g[oa + dy:ob + dy, ca + dx:cb + dx]
+                gd *= gd
+                lj = gd @ ginv
+            if sigma_s > 0:
+                sp = dtype.type((dy * dy + dx * dx) / (2.0 * sigma_s * sigma_s))
+                lj = sp if lj is None else np.add(lj, sp, out=lj)
+            if lj is not None:
+                ps -= lj[..., None] if np.ndim(lj) else lj
+            wgt = np.exp(ps, out=ps)
+            den[oa - y0:ob - y0, ca:cb] += wgt
+            if cw == c:
+                wgt *= yq[oa - ra:ob - ra]
+                num[oa - y0:ob - y0, ca:cb] += wgt
+            else:
+                num[oa - y0:ob - y0, ca:cb] += wgt * yq[oa - ra:ob - ra]
+    out[y0:y1] = num / np.maximum(den, 1e-30 if dtype == np.float32 else 1e-300)
 
 
 def nlm_center_weights(values, variances, cy, cx, radius: int, patch_radius: int, ks,
@@ -550,10 +572,8 @@ def nlm_center_weights(values, variances, cy, cx, radius: int, patch_radius: int
     epsd = dtype.type(max(float(eps), 1e-300 if dtype == np.float64 else 1e-30))
     acc = np.zeros((K, n, s, s))
     cnt = np.zeros((n, s, s))
-    tmp = np.empty((n, s, s), dtype)
-    dsum = np.empty((n, s, s), dtype)
     with np.errstate(over="ignore", invalid="ignore", divide="ignore"):
-        _center_patch_sums(ye, ve, inside, acc, cnt, tmp, dsum, k2, epsd, r, pr, c)
+        _center_patch_sums(ye, ve, inside, acc, cnt, k2, epsd, r, pr, c)
     pdist = np.maximum(acc / np.maximum(cnt, 1.0), 0.0)                # (K, N, s, s)
     logw = -pdist / (2.0 * max(float(sigma_r), 1e-12) ** 2)
     if sigma_s > 0:
@@ -564,39 +584,59 @@ def nlm_center_weights(values, variances, cy, cx, radius: int, patch_radius: int
     return np.ascontiguousarray(np.moveaxis(wgt, 0, 1)).reshape(n, K, s * s)
 
 
-def _center_patch_sums(ye, ve, inside, acc, cnt, tmp, dsum, k2, epsd, r, pr, c):
-    """Patch sums of the clipped channel-mean Eq. 5 distance for every k
-    (loops over patch offsets, k and channels; vectorised over centres and
-    window pixels)."""
+def _center_patch_sums(ye, ve, inside, acc, cnt, k2, epsd, r, pr, c):
+    """Patch sums of the clipped channel-mean Eq. 5 distance for every k,
+    added to ``acc`` (K, N, s, s) float64 and the pair counts to ``cnt``.
+
+    One pass per patch offset (ly, lx): the Eq. 5 numerators and variance
+    sums are formed for all channels at once (they do not depend on k) and
+    the distances for all K candidates and channels in one (K, C, N, s, s)
+    block, then summed over channels in channel order, scaled by 1/C,
+    clipped and added to ``acc`` -- the same float operations in the same
+    order per element as a loop over k and channels, so the same bits.
+    ye, ve : (C, N, E, E) gathered values / variances, E = s + 2 pr.
+    """
     R = r + pr
     s = 2 * r + 1
+    n = ye.shape[1]
+    dt = ye.dtype
+    K = k2.size
+    kc = np.asarray(k2, dt).reshape(K, 1, 1, 1, 1)
+    num = np.empty((c, n, s, s), dt)
+    sv = np.empty((c, n, s, s), dt)
+    q = np.empty((K, c, n, s, s), dt)
+    dsum = np.empty((K, n, s, s), dt)
+    ok = np.empty((n, s, s), bool)
+    inv_c = dt.type(1.0 / c)
     for ly in range(-pr, pr + 1):
         for lx in range(-pr, pr + 1):
-            ina = inside[:, R + ly, R + lx][:, None, None]
             sl = (slice(None), slice(pr + ly, pr + ly + s), slice(pr + lx, pr + lx + s))
-            ok = ina & inside[sl]
+            np.logical_and(inside[:, R + ly, R + lx][:, None, None], inside[sl], out=ok)
             cnt += ok
-            nums, svs = [], []
-            for ch in range(c):
-                a = ye[ch][:, R + ly, R + lx][:, None, None]      # centre-patch pixel
-                va = ve[ch][:, R + ly, R + lx][:, None, None]
-                b, vb = ye[ch][sl], ve[ch][sl]
-                nm = a - b
-                nm *= nm
-                nm -= va + np.minimum(va, vb)
-                nums.append(nm)
-                svs.append(va + vb)
-            for kk in range(k2.size):
-                dsum[...] = 0
-                for ch in range(c):
-                    np.multiply(svs[ch], k2[kk], out=tmp)
-                    tmp += epsd
-                    np.divide(nums[ch], tmp, out=tmp)
-                    dsum += tmp
-                dsum *= dsum.dtype.type(1.0 / c)
-                np.minimum(dsum, D_CLIP, out=dsum)
-                dsum[~ok] = 0
-                acc[kk] += dsum
+            a = ye[:, :, R + ly, R + lx][..., None, None]            # centre-patch pixel
+            va = ve[:, :, R + ly, R + lx][..., None, None]
+            b, vb = ye[(slice(None),) + sl], ve[(slice(None),) + sl]
+            np.subtract(a, b, out=num)
+            num *= num
+            np.minimum(va, vb, out=sv)
+            np.add(va, sv, out=sv)
+            num -= sv                                                # |y_a - y_b|^2 - (va + min)
+            np.add(va, vb, out=sv)
+            np.multiply(sv, kc, out=q)                               # k^2 (va + vb) + eps
+            q += epsd
+            np.divide(num, q, out=q)
+            if c == 1:
+                dsum[...] = q[:, 0]
+            else:
+                np.add(q[:, 0], q[:, 1], out=dsum)
+                for ch in range(2, c):
+                    dsum += q[:, ch]
+            dsum *= inv_c
+            np.minimum(dsum, D_CLIP, out=dsum)
+            if ok.all():
+                acc += dsum
+            else:
+                np.add(acc, dsum, out=acc, where=ok)
 
 
 # ------------------------------------------------------------------------- Sobel

@@ -77,7 +77,10 @@ pieces are cut by the data only, each writes only its own models' rows and
 returns its Eq. 13 sums, and the sums (and the coverage maximum) are added
 one piece at a time in piece order (``parallel.ordered_reduce``): the output is
 bit-identical for any thread count.  Frames below ``THREAD_MIN_PIXELS`` run
-inline.  The feature prefilter (``core.filters.nlm_filter``) is still serial.
+inline.  The feature prefilter (``core.filters.nlm_filter``'s row strips, then
+one guided filter per channel) and the colour guide (``guided_filter_mean``'s
+row strips) run on the same pool, each piece writing only its own rows or
+channel.
 
 Measurements and design notes: docs/notes/rhf.md
 """
@@ -438,8 +441,17 @@ def prefilter_features(feats: np.ndarray, feat_var: np.ndarray, params: Params) 
                    sigma_r=params.sigma_r, sigma_s=params.sigma_s, guides=feats,
                    guide_sigmas=sig[:feats.shape[2]], channelwise=True, eps=params.nlm_eps,
                    dtype=np.float32)
-    for m in range(f.shape[2]):                 # channel by channel, in place
+
+    def channel(m):                             # channel by channel, in place
         f[..., m] = _guided_rows(f[..., m], f[..., m], params.guided_radius, params.guided_eps)
+
+    # channels are independent (each reads and writes only its own): on the
+    # pool, same bits for any thread count; inline for small frames
+    if f.shape[0] * f.shape[1] < THREAD_MIN_PIXELS:
+        for m in range(f.shape[2]):
+            channel(m)
+    else:
+        parallel.map_ordered(channel, range(f.shape[2]))
     return f
 
 
@@ -889,12 +901,23 @@ def hat_bias_variance(X, w, Y, y_prev, var_prev, ridge: float = 1e-3, pilot_var=
     if u is not None:
         hjj = np.empty((Bn, K, n))
         hu = var if Cu is None else np.empty((Bn, K, n))
+    # lean: the channels of y_prev as (B, n) planes, so the bias^2 sums run
+    # along n, not along a 3-long strided last axis (same operations)
+    yp_ch = [y_prev[..., ch] for ch in range(C)] if lean else None
     for k in range(K):                                            # per-pixel terms per k
         pz = X @ beta[:, k]                                       # (B, n, 2C)
-        b = np.subtract(pz[..., C:], y_prev, out=pz[..., C:])
         if lean:
-            bias[:, k] = _channel_mean_sq(b)
+            bk = bias[:, k]                                       # mean_c (H y_prev - y_prev)^2
+            for ch in range(C):
+                d = np.subtract(pz[..., C + ch], yp_ch[ch])
+                d *= d
+                if ch == 0:
+                    bk[...] = d
+                else:
+                    bk += d
+            bk /= C
         else:
+            b = np.subtract(pz[..., C:], y_prev, out=pz[..., C:])
             pred[:, k] = pz[..., :C]
             bias[:, k] = b
         var[:, k] = np.einsum("bnp,bnp->bn", X @ Cm[:, k], X)
@@ -902,7 +925,7 @@ def hat_bias_variance(X, w, Y, y_prev, var_prev, ridge: float = 1e-3, pilot_var=
             hjj[:, k] = w[:, k] * np.einsum("bnp,bnp->bn", X @ Ainv[:, k], X)
             if Cu is not None:
                 hu[:, k] = np.einsum("bnp,bnp->bn", X @ Cu[:, k], X)
-        del pz, b
+        del pz
     np.maximum(var, 0.0, out=var)
     first = beta[..., :C] if lean else pred
     if u is None:
@@ -993,15 +1016,6 @@ def _design_rows(feat, idx, inside, cidx, width):
     s = np.abs(diff).max(axis=1, keepdims=True)
     diff = np.where(s > 1e-12, diff / np.where(s > 1e-12, s, 1.0), 0.0)
     return np.concatenate([np.ones((c, n, 1)), diff], axis=2)
-
-def _channel_mean_sq(x: np.ndarray) -> np.ndarray:
-    """mean over the last axis of x^2 (few channels: explicit sum, faster)."""
-    acc = x[..., 0] * x[..., 0]
-    for ch in range(1, x.shape[-1]):
-        acc += x[..., ch] * x[..., ch]
-    return acc / x.shape[-1]
-
-
 
 
 @dataclass

@@ -4,10 +4,11 @@ against the cached 1024-spp references, speed against OIDN, quality figures.
   python tools/rhf_study.py render            # cache buffers of the six scenes (8, 16 spp)
   python tools/rhf_study.py quality [--set input_blend=fixed ...] [--before]
   python tools/rhf_study.py speed [--compare] [--profile]   # 512x512 (tiled cornell 16 spp)
+  python tools/rhf_study.py exact             # RHF, LP, oracle map == the before tree's
 
-Buffers are cached in $RHF_STUDY_CACHE (default /tmp/rhf_study); --before and
---compare load the pre-change module from $RHF_BEFORE (default
-/work/before/core/rhf.py).
+Buffers are cached in $RHF_STUDY_CACHE (default /tmp/rhf_study); --before,
+--compare and exact load the pre-change tree holding $RHF_BEFORE (default
+/work/before/core/rhf.py) as its own package.
 """
 from __future__ import annotations
 
@@ -70,22 +71,33 @@ def load(scene, spp, seed=0):
 
 
 def reference(scene, shape):
+    """The scene's cached frame-1 reference with the most samples in REFS."""
+    import glob
+    import re
     from cycles_adaptive.core.io import read_reference
-    return read_reference(os.path.join(REFS, f"{scene}.f0001.r100.s1024.exr"), shape)
+    paths = glob.glob(os.path.join(REFS, f"{scene}.f0001.r100.s*.exr"))
+    spp = lambda p: int(re.search(r"\.s(\d+)\.exr$", p).group(1))
+    path = max(paths, key=spp) if paths else os.path.join(REFS, f"{scene}.f0001.r100.s1024.exr")
+    return read_reference(path, shape)
 
 
 BEFORE = os.environ.get("RHF_BEFORE", "/work/before/core/rhf.py")
 
 
+def before_tree(path=BEFORE):
+    """The whole pre-change tree holding ``path`` (its core/rhf.py; default
+    /work/before, env RHF_BEFORE) imported as package ``rhf_before_tree``, so
+    its rhf uses its own filters and parallel: {"rhf", "lp", "oracle"}
+    modules."""
+    import importlib
+    root = os.path.dirname(os.path.dirname(os.path.abspath(path)))
+    load_package("rhf_before_tree", root)
+    return {m: importlib.import_module(f"rhf_before_tree.core.{m}") for m in ("rhf", "lp", "oracle")}
+
+
 def before_rhf(path=BEFORE):
-    """A pre-change copy of ``core/rhf.py`` (default /work/before; env
-    RHF_BEFORE), loaded beside the current one (same helpers)."""
-    import importlib.util
-    spec = importlib.util.spec_from_file_location("cycles_adaptive.core.rhf_before", path)
-    mod = importlib.util.module_from_spec(spec)
-    sys.modules[spec.name] = mod
-    spec.loader.exec_module(mod)
-    return mod
+    """The pre-change ``core/rhf.py`` (``before_tree``)."""
+    return before_tree(path)["rhf"]
 
 
 def pooled(x, s=8):
@@ -153,8 +165,8 @@ def _best(fn, reps):
 def speed(profile=False, compare_before=False, scene="cornell", spp=16, reps=2):
     """Seconds per megapixel of RHF and OIDN on the same 512x512 buffers
     (least of ``reps`` interleaved runs each); with ``compare_before`` also
-    the pre-change module (RHF_BEFORE) and the bit-exactness of the current
-    one with the new options off."""
+    the pre-change tree's RHF (RHF_BEFORE), interleaved, and whether the
+    current outputs equal its (``same_outputs``)."""
     from cycles_adaptive.core import oidn
     buf = tiled(load(scene, spp))
     mp = buf.n.size / 1e6
@@ -177,25 +189,88 @@ def speed(profile=False, compare_before=False, scene="cornell", spp=16, reps=2):
           f"RHF / one OIDN call {b['rhf'] / b['oidn_one']:.2f}; models {res.info['models']}")
     if old is not None:
         print(f"before {b['before']:.2f} s/MP (before / oidn.reconstruct "
-              f"{b['before'] / b['oidn_denoise']:.2f}); models {ro.info['models']}")
-        p = rhf.Params(detail_cover=False, input_blend="fixed", clamp_predictions=False)
-        rn = rhf.reconstruct(buf, p)
-        print("new options off == before: image", np.array_equal(rn.image, ro.image),
-              "error", np.array_equal(rn.error, ro.error))
+              f"{b['before'] / b['oidn_denoise']:.2f}, before / one OIDN call "
+              f"{b['before'] / b['oidn_one']:.2f}); models {ro.info['models']}")
+        print("RHF == before:", same_outputs(rhf, old, buf, res, ro))
     if profile:
+        # on one thread: cProfile sees only the calling thread, not the pool's
+        from cycles_adaptive.core import parallel
+        parallel.set_threads(1)
         pr = cProfile.Profile()
         pr.enable()
-        rhf.reconstruct(buf)
+        rp = rhf.reconstruct(buf)
         pr.disable()
+        parallel.set_threads(None)
+        print("one thread:", {k: round(v, 2) for k, v in rp.info.items() if k.startswith("seconds")})
         pstats.Stats(pr).sort_stats("tottime").print_stats(15)
+
+
+def _max_rel(a, b):
+    """Largest |a - b| / max(|a|, |b|) over the entries (0 where both are 0)."""
+    a, b = np.asarray(a, np.float64), np.asarray(b, np.float64)
+    den = np.maximum(np.abs(a), np.abs(b))
+    return float(np.max(np.where(den > 0, np.abs(a - b) / np.where(den > 0, den, 1.0), 0.0),
+                        initial=0.0))
+
+
+def same_outputs(new, old, buf, rn=None, ro=None, budget_per_px=4):
+    """Compare one method module against its pre-change copy on ``buf``:
+    image, error, dimension and the sample map (``budget_per_px`` samples
+    per pixel) -> {name: (np.array_equal, max relative difference)}."""
+    rn = new.reconstruct(buf) if rn is None else rn
+    ro = old.reconstruct(buf) if ro is None else ro
+    budget = budget_per_px * buf.n.size
+    mn = new.sample_map(buf, rn, budget, None, {})
+    mo = old.sample_map(buf, ro, budget, None, {})
+    out = {}
+    for name, a, b in (("image", rn.image, ro.image), ("error", rn.error, ro.error),
+                       ("dimension", np.float64(rn.dimension if rn.dimension is not None else np.nan),
+                        np.float64(ro.dimension if ro.dimension is not None else np.nan)),
+                       ("sample_map", mn, mo)):
+        out[name] = (bool(np.array_equal(a, b, equal_nan=True)), _max_rel(a, b))
+    return out
+
+
+def exact(scenes=("soft_shadows", "glossy"), spp=16):
+    """Bit-exactness of the current RHF, LP and oracle map against the
+    pre-change tree (RHF_BEFORE): cornell tiled to 512x512 and ``scenes`` at
+    their cached 128x128; prints np.array_equal and the max relative
+    difference of every output."""
+    from cycles_adaptive.core import lp, oracle
+    bt = before_tree()
+    inputs = [("cornell 512x512", tiled(load("cornell", spp)), "cornell")]
+    inputs += [(f"{s} 128x128", load(s, spp), s) for s in scenes]
+    ok = True
+    from cycles_adaptive.core.filters import box_mean
+    from cycles_adaptive.core.io import ImageFileError
+    for label, buf, scene in inputs:
+        try:
+            ref = reference(scene, load(scene, spp).shape)
+            ref = np.tile(ref, (buf.shape[0] // ref.shape[0], buf.shape[1] // ref.shape[1], 1))
+        except ImageFileError:        # no cached reference: a fixed stand-in (same for both trees)
+            ref = box_mean(buf.color.mean, 2)
+            label += " (stand-in ref)"
+        for name, new, old in (("rhf", rhf, bt["rhf"]), ("lp", lp, bt["lp"])):
+            rn, ro = new.reconstruct(buf), old.reconstruct(buf)
+            res = same_outputs(new, old, buf, rn, ro)
+            on = oracle.oracle_map(rn.image, ref, buf.n, 4 * buf.n.size, rn.dimension)
+            oo = bt["oracle"].oracle_map(ro.image, ref, buf.n, 4 * buf.n.size, ro.dimension)
+            res["oracle_map"] = (bool(np.array_equal(on, oo)), _max_rel(on, oo))
+            ok &= all(v[0] for v in res.values())
+            print(f"{label:18s} {name:3s} " + "  ".join(
+                f"{k} {'equal' if e else 'DIFF'} (max rel {d:.1e})" for k, (e, d) in res.items()),
+                flush=True)
+    print("all equal:", ok)
+    return ok
 
 
 def main(argv=None):
     ap = argparse.ArgumentParser()
-    ap.add_argument("cmd", choices=("render", "quality", "speed"))
+    ap.add_argument("cmd", choices=("render", "quality", "speed", "exact"))
     ap.add_argument("--before", action="store_true", help="quality: the /work/before module")
     ap.add_argument("--profile", action="store_true")
     ap.add_argument("--compare", action="store_true")
+    ap.add_argument("--reps", type=int, default=2, help="speed: interleaved repeats")
     ap.add_argument("--scenes", default=",".join(SCENES))
     ap.add_argument("--spp", default="8,16")
     ap.add_argument("--set", action="append", default=[], help="Params field=value")
@@ -211,8 +286,10 @@ def main(argv=None):
             kw[k] = type(getattr(rhf.Params(), k))(v) if not isinstance(getattr(rhf.Params(), k), bool) \
                 else v.lower() in ("1", "true")
         quality(before_rhf() if a.before else rhf, spps, scenes, **kw)
+    elif a.cmd == "exact":
+        exact()
     else:
-        speed(a.profile, a.compare)
+        speed(a.profile, a.compare, reps=a.reps)
 
 
 if __name__ == "__main__":
