@@ -297,6 +297,7 @@ class AdaptiveRun:
         self._round_tasks = 0                      # renders of the latest round
         self._round_samples = 0                    # and its samples
         self.slices = 0                            # tasks split to fit the limit
+        self._crop_estimate_at = None              # samples when reconstruct_estimate came from crops
 
     # ------------------------------------------------------------- accounting
     @property
@@ -381,11 +382,14 @@ class AdaptiveRun:
         return self.cost.samples_within(share, rps), False
 
     def _measure_reserves(self):
-        """A time-limited run's :meth:`final_reserve`, measured once: the
-        caller's ``reserve_probe`` (its output's write) and the final
+        """A time-limited run's :meth:`final_reserve`: the caller's
+        ``reserve_probe`` (its output's write), once, and the final
         reconstruction's estimate (:meth:`_measure_reconstruction`; a
         selecting method's after its choice).  The initial pass calls it after
-        its first subset, so the subsets that follow are planned with it."""
+        its first subset, so the subsets that follow are planned with it, and
+        the loop again after the pass: a method's cost depends on the sample
+        groups it sees (LP's on one group measured 4.7x its cost on four), so
+        an estimate from crops of fewer samples is measured again."""
         if not self.timed:
             return
         if self.reserve_probe is not None:
@@ -394,32 +398,48 @@ class AdaptiveRun:
             work = Work(lambda: probe(buf), "timing the output's write")
             yield Progress("adapt", 0, self._fraction(), work.label, work=work)
             self.reserve_seconds = float(work.result())
-        if self.reconstruct_estimate is None and not selects(self.method):
+        if selects(self.method):
+            return
+        if self.reconstruct_estimate is None or self._crop_estimate_at not in (None, self.samples_rendered):
+            self._crop_estimate_at = self.samples_rendered
             yield from self._measure_reconstruction()
 
     def _measure_reconstruction(self):
         """A time-limited run's estimate of the final reconstruction's
-        seconds before any: the method's reconstruction of the frame's centre
-        (a quarter of each side, at least 64 px), timed and scaled by the
-        pixel count (a
-        reconstruction's cost is linear in pixels; its fixed costs scaled
-        with it over-estimate, which ends the sampling early rather than
-        late).  A full reconstruction measured later replaces it."""
+        seconds before any: the method's reconstruction of two centre crops
+        (a quarter of each side, at least 64 px, and half of that), timed
+        and extrapolated to the frame by the line through both
+        (:func:`core.timeplan.extrapolate_seconds`: a fixed cost is not
+        scaled with the pixels; the small crop runs first and pays any
+        one-time set-up, which then over-estimates rather than under).  A
+        small frame is its own crop, timed once, and its reconstruction is
+        kept for the end.  A full reconstruction measured later replaces the
+        estimate."""
         h, w = self.height, self.width
         ch, cw = min(h, max(64, h // 4)), min(w, max(64, w // 4))
-        y0, x0 = (h - ch) // 2, (w - cw) // 2
         whole = (ch, cw) == (h, w)  # a small frame: its reconstruction, kept for the end
-        crop = self.view if whole else self.view.crop(x0, y0, x0 + cw, y0 + ch)
         samples = self.samples_rendered
 
-        def measure():
+        def crop(ch, cw):
+            y0, x0 = (h - ch) // 2, (w - cw) // 2
+            return self.view.crop(x0, y0, x0 + cw, y0 + ch)
+
+        def timed(buf):
             t0 = time.perf_counter()
-            result = self.method.reconstruct(crop, self.params)
+            result = self.method.reconstruct(buf, self.params)
             seconds = time.perf_counter() - t0
             self.timing.adapt += seconds
+            return result, seconds
+
+        def measure():
             if whole:
+                result, seconds = timed(self.view)
                 self._result = (samples, result)
-            return seconds * self.pixels / float(ch * cw)
+                return seconds
+            sh, sw = max(32, ch // 2), max(32, cw // 2)
+            small = timed(crop(sh, sw))[1]
+            large = timed(crop(ch, cw))[1]
+            return timeplan.extrapolate_seconds(sh * sw, small, ch * cw, large, self.pixels)
 
         work = Work(measure, f"timing the reconstruction ({self.method.NAME}) on {cw}x{ch} px",
                     self.main_thread_only())
@@ -678,6 +698,7 @@ class AdaptiveRun:
         self.timing.adapt += seconds
         if self.timed:
             self.reconstruct_estimate = seconds
+            self._crop_estimate_at = None
         return result
 
     def _select(self):
@@ -835,6 +856,7 @@ class AdaptiveRun:
             result = self.method.reconstruct(self.view, self.params)
             if self.timed:  # measured: the final one costs as much, or nothing if no sample follows
                 self.reconstruct_estimate = time.perf_counter() - t1
+                self._crop_estimate_at = None
                 self._result = (self.samples_rendered, result)
         planned = self._plan_iteration(result, budget)
         self.timing.adapt += time.perf_counter() - t0

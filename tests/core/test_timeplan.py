@@ -292,3 +292,24 @@ def test_the_initial_pass_stops_before_a_subset_predicted_past_the_limit(monkeyp
     run, ex, clock, _ = _timed(monkeypatch, "var", 3.0, overhead=0.0, per_sample=2.0 / (32 * 48))
     assert run.time_limited and len(ex.tasks) == 1
     assert run.elapsed() <= 3.0
+
+
+def test_extrapolation_keeps_a_fixed_cost_fixed():
+    from core.timeplan import extrapolate_seconds
+    t = lambda p: 0.2 + 1e-6 * p  # 0.2 s of set-up, 1 us a pixel
+    assert extrapolate_seconds(4096, t(4096), 16384, t(16384), 262144) == pytest.approx(t(262144))
+    # scaling the larger crop alone would say 16x its 0.216 s
+    assert 16 * t(16384) > 3 * t(262144)
+    # noise: a smaller crop slower than the larger -> the scaled larger crop (over-estimate)
+    assert extrapolate_seconds(4096, 0.5, 16384, 0.3, 262144) == pytest.approx(0.3 * 16)
+    # never below the larger crop, nor NaN for hostile input
+    assert extrapolate_seconds(4096, 0.1, 16384, 0.1000001, 262144) >= 0.1000001
+    assert extrapolate_seconds(0, 0.1, 16384, 0.2, 262144) == pytest.approx(0.2 * 16)
+    assert np.isfinite(extrapolate_seconds(4096, float("nan"), 16384, 0.2, 262144))
+
+
+def test_extrapolation_never_exceeds_the_scaled_larger_crop():
+    """A method cheaper per pixel on the small crop (a steep line) is
+    estimated by scaling the larger crop, not by the line's 16x extrapolation."""
+    from core.timeplan import extrapolate_seconds
+    assert extrapolate_seconds(4096, 0.01, 16384, 0.2, 262144) == pytest.approx(0.2 * 16)
