@@ -289,8 +289,9 @@ class AdaptiveRun:
         self.cost = timeplan.RenderCost()
         self.reserve_seconds = 0.0
         #: optional ``probe(buffers) -> seconds``: a time-limited run calls it
-        #: once after the initial pass (as a Work, pure: no bpy) and keeps
-        #: what it returns in reserve_seconds (the job: its output's write)
+        #: once, after the initial pass's first subset (as a Work, pure: no
+        #: bpy), and keeps what it returns in reserve_seconds (the job: its
+        #: output's write)
         self.reserve_probe = None
         self.reconstruct_estimate: float | None = None
         self._round_seconds: float | None = None   # a round's seconds besides its renders
