@@ -252,11 +252,14 @@ def test_max_seconds_bounds_the_wall_time(tmp_path, method):
     before the plan: one render past any limit)."""
     blend = _blend(tmp_path, width=48, height=32)
     limit = 3.0
-    args = [a if a != "var" else method for a in LONG_RUN]
+    # uniform renders few, large tasks: 1000 spp of 48x32 finished inside the
+    # 3 s limit under Blender 4.2 and 5.0 (fresh-clone CI), so its budget is 100x larger
+    spp = "1000" if method == "var" else "100000"
+    args = [method if a == "var" else spp if a == "1000" else a for a in LONG_RUN]
     r = _cli("render", blend, "--out", str(tmp_path / "t.exr"), *args, "--max-seconds", str(limit))
     assert r.returncode == 0, r.stderr
     res = _last_json(r.stdout)
-    assert res["time_limited"] is True and res["max_seconds"] == limit and res["spp_mean"] < 1000
+    assert res["time_limited"] is True and res["max_seconds"] == limit and res["spp_mean"] < float(spp)
     assert res["total_seconds"] <= limit * 1.1 + res["max_task_seconds"], res
     assert res["max_task_seconds"] < limit / 2, res
     assert res["sampling_seconds"] + res["reserved_seconds"] <= limit + res["max_task_seconds"], res
