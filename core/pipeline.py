@@ -334,11 +334,16 @@ class AdaptiveRun:
         (:attr:`reserve_seconds`)."""
         return float(self.reconstruct_estimate or 0.0) + max(float(self.reserve_seconds), 0.0)
 
+    def _sampling_seconds_left(self) -> float:
+        """Seconds the limit still leaves for sampling: ``Options.max_seconds``
+        less the elapsed time and :meth:`final_reserve`."""
+        return self.options.max_seconds - self.elapsed() - self.final_reserve()
+
     def _time_up(self) -> bool:
         """``Options.max_seconds`` spent, less :meth:`final_reserve`: checked
         before every task, so the sampling ends within one task (one slice,
         :func:`core.timeplan.slice_tasks`) of the limit."""
-        if self.timed and self.elapsed() >= self.options.max_seconds - self.final_reserve():
+        if self.timed and self._sampling_seconds_left() <= 0:
             self.time_limited = True
         return self.time_limited
 
@@ -349,8 +354,8 @@ class AdaptiveRun:
         which are not sliced, stop before such a one."""
         if not self.timed or not len(self.cost):
             return False
-        end = self.elapsed() + self.cost.predict(task.pixels * task.samples)
-        return end > self.options.max_seconds * (1.0 + timeplan.SLICE_SHARE) - self.final_reserve()
+        overrun = self.cost.predict(task.pixels * task.samples) - self._sampling_seconds_left()
+        return overrun > timeplan.SLICE_SHARE * self.options.max_seconds
 
     def _time_cap(self, rounds: int) -> tuple:
         """``(samples, uniform)``: what the next round may render so that it
@@ -364,7 +369,7 @@ class AdaptiveRun:
         it places, and the round samples uniformly with all the time left
         (``uniform`` True; only for an adaptive method)."""
         rounds = max(1, int(rounds))
-        left = self.options.max_seconds - self.elapsed() - self.final_reserve()
+        left = self._sampling_seconds_left()
         per_round = self._round_seconds
         if per_round is None:
             per_round = float(self.reconstruct_estimate or 0.0) if self.method.SAMPLER_USES_RESULT else 0.0

@@ -511,7 +511,7 @@ class RenderJob:
             self.camera = self.executor.camera_info(self.options.frame)
             self.run = AdaptiveRun(self.executor, self.options, checkpoint=self.ckpt, prior=self.prior,
                                    method=self.method, started=self.t0)
-            if self.out and self.options.max_seconds > 0:
+            if self.out and self.run.timed:
                 self.run.reserve_probe = self._time_output
             if self.resume:
                 try:
