@@ -199,12 +199,14 @@ class SettingsGuard:
 
 
 def set_exr_output(guard: SettingsGuard, settings) -> None:
-    """Multilayer 32-bit EXR output, on every supported version."""
+    """Multilayer 32-bit EXR output, on every supported version, uncompressed:
+    each render's file is read back once and deleted, and ZIP's compression
+    cost up to 7 % of a one-sample 768x576 render (docs/notes/loop-speed.md)."""
     if hasattr(settings, "media_type"):  # Blender 5.0
         guard.set(settings, "media_type", "MULTI_LAYER_IMAGE")
     guard.set(settings, "file_format", "OPEN_EXR_MULTILAYER")
     guard.set(settings, "color_depth", "32")
-    guard.set(settings, "exr_codec", "ZIP")
+    guard.set(settings, "exr_codec", "NONE")
 
 
 def render_still(scene, view_layer, path: str, what: str = "", attributes: dict | None = None) -> dict:

@@ -214,26 +214,37 @@ _T_CACHE: dict = {}
 
 
 def _t_table(z: float, max_dof: int = 256) -> np.ndarray:
+    """Per degrees of freedom 1..``max_dof``, the t with one-sided tail
+    ``P(T > t) = P(N > z)``: the tail integral of the t density, in ``u =
+    1/t`` (a finite range), by the trapezoid rule on 4096 steps; rows whose
+    tail at ``t = z`` is still too small (``z`` below the t value) are
+    integrated again on a range 50x wider.  Rows of ``dof`` in blocks (one
+    array per block: the same sums as one row at a time, bounded memory)."""
     if z in _T_CACHE:
         return _T_CACHE[z]
     import math
     tail = math.erfc(z / math.sqrt(2.0)) / 2.0  # one-sided tail probability
-    out = np.empty(max_dof)
-    for nu in range(1, max_dof + 1):
-        c = math.exp(math.lgamma((nu + 1) / 2) - math.lgamma(nu / 2)) / math.sqrt(nu * math.pi)
-        # tail integral in u = 1/t (finite range): int_0^{1/t} pdf(1/u) / u^2 du
-        u = np.linspace(0.0, 1.0 / max(z, 1e-6), 4097)[1:]
+
+    def solve(nu, n, top):
+        c = np.exp(np.array([math.lgamma((v + 1) / 2) - math.lgamma(v / 2) for v in nu])) \
+            / np.sqrt(nu * math.pi)
+        u = np.linspace(0.0, top, n)[1:]
         t = 1.0 / u
-        f = c * (1.0 + t * t / nu) ** (-(nu + 1) / 2) / (u * u)
+        f = c[:, None] * np.exp(np.log1p(t * t / nu[:, None]) * (-(nu[:, None] + 1) / 2)) / (u * u)
         # cumulative tail from t = inf (u = 0) downwards
-        cum = np.concatenate([[0.0], np.cumsum((f[1:] + f[:-1]) * 0.5 * np.diff(u))])
-        if cum[-1] < tail:  # threshold below z: refine on a wider range
-            u = np.linspace(0.0, 1.0 / max(z / 50.0, 1e-6), 200001)[1:]
-            t = 1.0 / u
-            f = c * (1.0 + t * t / nu) ** (-(nu + 1) / 2) / (u * u)
-            cum = np.concatenate([[0.0], np.cumsum((f[1:] + f[:-1]) * 0.5 * np.diff(u))])
-        i = int(np.searchsorted(cum, tail))
-        out[nu - 1] = 1.0 / u[min(max(i, 0), len(u) - 1)]
+        cum = np.cumsum((f[:, 1:] + f[:, :-1]) * 0.5 * np.diff(u), axis=1)
+        cum = np.concatenate([np.zeros((len(nu), 1)), cum], axis=1)
+        i = (cum < tail).sum(axis=1)  # searchsorted per row (cum is non-decreasing)
+        return 1.0 / u[np.clip(i, 0, len(u) - 1)], cum[:, -1] >= tail
+
+    out = np.empty(max_dof)
+    block = 32
+    for lo in range(1, max_dof + 1, block):
+        nu = np.arange(lo, min(lo + block, max_dof + 1), dtype=np.float64)
+        t, ok = solve(nu, 4097, 1.0 / max(z, 1e-6))
+        for j in np.flatnonzero(~ok):  # threshold below z: refine on a wider range
+            t[j] = solve(nu[j:j + 1], 200001, 1.0 / max(z / 50.0, 1e-6))[0][0]
+        out[lo - 1:lo - 1 + len(nu)] = t
     _T_CACHE[z] = out
     return out
 
@@ -397,6 +408,10 @@ def consistency_guard(result: MethodResult, buf, z: float = 3.0, rows: int | Non
     h, w = mean.shape[:2]
     image = np.broadcast_to(result.image, mean.shape)
     error = np.broadcast_to(result.error, (h, w))
+    if not np.any((image != mean) & np.isfinite(mean)):
+        # the reconstruction is the sample mean wherever the guard judges (uniform,
+        # var): no pixel can contradict its samples
+        return replace(result, info=dict(result.info, guard_fraction=0.0))
     _t_table(float(z))  # fill the cache once, before the bands read it
     bad = np.zeros((h, w), bool)
     rows = _band_rows(rows, w)

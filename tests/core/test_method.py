@@ -39,6 +39,25 @@ def test_guard_returns_zero_variance_pixels_unchanged_and_skips_unknown_variance
     assert np.all(off.image == 0.7)
 
 
+def test_guard_on_the_sample_mean_changes_nothing_and_matches_the_full_judgement():
+    """The sample mean itself (uniform, var) passes without a judgement; its
+    result equals what judging every pixel gives (the mean nudged by 1e-12 on
+    one pixel goes through the bands)."""
+    rng = np.random.default_rng(2)
+    buf = _buf(rng)
+    buf.color.mean[1, 1, 0] = np.nan  # non-finite input is left to the method either way
+    img = np.where(np.isfinite(buf.color.mean), buf.color.mean, 0.0)
+    err = rng.random(buf.shape)
+    fast = consistency_guard(MethodResult(img, err), buf, z=3.0)
+    nudged = img.copy()
+    nudged[4, 5, 2] += 1e-12
+    full = consistency_guard(MethodResult(nudged, err), buf, z=3.0)
+    assert fast.info["guard_fraction"] == full.info["guard_fraction"] == 0.0
+    np.testing.assert_array_equal(fast.image, img)
+    np.testing.assert_array_equal(fast.error, full.error)
+    np.testing.assert_allclose(fast.image, full.image, rtol=0, atol=1e-12)
+
+
 def test_allocate_sums_to_budget_and_respects_cap():
     w = np.array([[100.0, 1.0], [1.0, 0.0]])
     out = allocate(w, 40, cap=np.full((2, 2), 15))

@@ -299,6 +299,28 @@ def test_pooling_matches_a_direct_weighted_sum():
         assert np.allclose(got[py, px], num / den, rtol=1e-12)
 
 
+def test_unguided_pooling_is_the_box_ratio_and_bands_agree(monkeypatch):
+    """Without guides pool_m2 is sum M2 / sum factor over the clipped window
+    (written out per pixel), the same in row bands of any size."""
+    rng = np.random.default_rng(12)
+    h, w, r = 11, 9, 2
+    m2 = rng.uniform(0, 1, (h, w, 3))
+    fac = rng.uniform(0.5, 2, (h, w))
+    d = rng.uniform(1, 5, (h, w))
+    got, dof = V.pool_m2(m2, fac, [], r, dof=d)
+    for py in range(h):
+        for px in range(w):
+            ys = slice(max(0, py - r), min(h, py + r + 1))
+            xs = slice(max(0, px - r), min(w, px + r + 1))
+            den = fac[ys, xs].sum()
+            assert np.allclose(got[py, px], m2[ys, xs].sum(axis=(0, 1)) / den, rtol=1e-12)
+            assert np.allclose(dof[py, px], den * den / (fac[ys, xs] ** 2 / d[ys, xs]).sum(), rtol=1e-12)
+    monkeypatch.setattr(V, "CHUNK_ROWS", 3)
+    banded, banded_dof = V.pool_m2(m2, fac, [], r, dof=d)
+    np.testing.assert_array_equal(banded, got)
+    np.testing.assert_array_equal(banded_dof, dof)
+
+
 def test_effective_dof():
     """Unpooled: k - 1.  Flat features, equal n and k: a (2r+1)^2 pool of
     3-dof pixels has 3 (2r+1)^2 dof inside the image (fewer at corners);

@@ -1,0 +1,145 @@
+"""Speed of ``uniform`` through our loop against one plain Cycles render (docs/notes/loop-speed.md).
+
+Both render the same scene at the same spp in one process, alternating, so the
+machine's load falls on both alike.  Plain Cycles is the benchmark's peer
+(bench/peers.py: one full-frame render with the scene's own pattern, EXR
+written and read back); ours is ``AdaptiveRun`` with ``uniform`` and the final
+reconstruction, as the benchmark runs it.  Every render is split into Cycles'
+own time (``bpy.ops.render.render`` with the EXR write) and reading the EXR
+back, so the note can say where the loop's extra time goes:
+
+    .venv/bin/python tools/loop_speed.py [--scenes cornell,...] [--percent 100,600] [--spp 16]
+        [--repeats 5] [--seed 0] [--subsets N] [--out F.json]
+
+Prints, per scene and size, the medians over repeats and the speed ratio
+plain / ours (>= 1 would be as fast as plain Cycles).
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import statistics
+import sys
+import time
+
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+sys.path.insert(0, ROOT)
+from launch import load_package  # noqa: E402
+
+load_package()
+import bpy  # noqa: E402
+
+from cycles_adaptive.addon import executor as ex  # noqa: E402
+from cycles_adaptive.bench.peers import PlainCycles  # noqa: E402
+from cycles_adaptive.core import io as imageio  # noqa: E402
+from cycles_adaptive.core.pipeline import AdaptiveRun, Options  # noqa: E402
+
+SCENES = "cornell,dof,soft_shadows,glossy,motion_blur,animated"
+
+
+class Clock:
+    """Seconds spent in Cycles' render call (with its EXR write) and in reading
+    the EXR back, and the number of renders, since the last :meth:`reset`."""
+
+    def __init__(self):
+        self.reset()
+        self._render = bpy.ops.render.render
+        self._read = imageio.read_layers
+        clock = self
+
+        def read_layers(*a, **k):
+            t0 = time.perf_counter()
+            try:
+                return clock._read(*a, **k)
+            finally:
+                clock.read += time.perf_counter() - t0
+
+        def render_still(scene, view_layer, path, what="", attributes=None):
+            t0 = time.perf_counter()
+            try:
+                return original(scene, view_layer, path, what, attributes)
+            finally:
+                clock.still += time.perf_counter() - t0
+                clock.renders += 1
+
+        original = ex.render_still
+        imageio.read_layers = read_layers
+        ex.render_still = render_still
+
+    def reset(self):
+        self.still, self.read, self.renders = 0.0, 0.0, 0
+
+    def split(self) -> dict:
+        return {"renders": self.renders, "cycles": self.still - self.read, "read": self.read}
+
+
+def plain(scene, vl, spp, seed, clock) -> dict:
+    clock.reset()
+    t0 = time.perf_counter()
+    with PlainCycles(scene, vl, seed, scene.cycles.sampling_pattern) as pc:
+        pc.render(spp)
+    return {"wall": time.perf_counter() - t0, **clock.split()}
+
+
+def ours(scene, vl, spp, seed, subsets, clock) -> dict:
+    clock.reset()
+    t0 = time.perf_counter()
+    with ex.CyclesExecutor(scene, vl, (), seed=seed) as exe:
+        opts = Options(method="uniform", spp=float(spp), seed=seed, frame=scene.frame_current,
+                       **({"subsets": subsets} if subsets else {}))
+        run = AdaptiveRun(exe, opts)
+        for _ in run.steps():
+            pass
+        run.reconstruct()
+    wall = time.perf_counter() - t0
+    tm = run.timing
+    return {"wall": wall, **clock.split(), "loop_render": tm.render, "reconstruct": tm.reconstruct,
+            "rest": wall - tm.render - tm.reconstruct}
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--scenes", default=SCENES)
+    ap.add_argument("--percent", default="100", help="resolution percentages (comma list)")
+    ap.add_argument("--spp", type=int, default=16)
+    ap.add_argument("--repeats", type=int, default=5)
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--subsets", type=int, default=0, help="the loop's subsets (0: its default)")
+    ap.add_argument("--out")
+    args = ap.parse_args(argv)
+    clock = Clock()
+    rows = []
+    for name in args.scenes.split(","):
+        for pct in (int(p) for p in args.percent.split(",")):
+            bpy.ops.wm.open_mainfile(filepath=os.path.join(ROOT, "sample_blends", f"{name}.blend"))
+            scene = bpy.context.scene
+            scene.frame_set(scene.frame_start)
+            scene.render.resolution_percentage = pct
+            vl = scene.view_layers[0]
+            plain(scene, vl, 1, args.seed, clock)  # warm-up: kernels, BVH, caches
+            p, o = [], []
+            for _ in range(args.repeats):
+                p.append(plain(scene, vl, args.spp, args.seed, clock))
+                o.append(ours(scene, vl, args.spp, args.seed, args.subsets, clock))
+            med = {side: {k: statistics.median(r[k] for r in runs) for k in runs[0]}
+                   for side, runs in (("plain", p), ("ours", o))}
+            w, h = ex.full_size(scene)
+            row = {"scene": name, "width": w, "height": h, "spp": args.spp, "repeats": args.repeats,
+                   "ratio": med["plain"]["wall"] / med["ours"]["wall"],
+                   "ratios": [a["wall"] / b["wall"] for a, b in zip(p, o)], **med}
+            rows.append(row)
+            print(f"{name:>12} {w}x{h} {args.spp} spp: plain {med['plain']['wall']:.3f} s "
+                  f"(cycles {med['plain']['cycles']:.3f}, read {med['plain']['read']:.3f}) | ours "
+                  f"{med['ours']['wall']:.3f} s ({int(med['ours']['renders'])} renders: cycles "
+                  f"{med['ours']['cycles']:.3f}, read {med['ours']['read']:.3f}; reconstruct "
+                  f"{med['ours']['reconstruct']:.3f}, rest {med['ours']['rest']:.3f}) | "
+                  f"speed {row['ratio']:.3f}x (median of pairs {statistics.median(row['ratios']):.3f}x, "
+                  f"Cycles' share {med['plain']['cycles'] / med['ours']['cycles']:.3f}x)", flush=True)
+    if args.out:
+        with open(args.out, "w") as f:
+            json.dump(rows, f, indent=1)
+
+
+if __name__ == "__main__":
+    main()
