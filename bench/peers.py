@@ -63,6 +63,12 @@ class PlainCycles:
                     g.set(c, k, getattr(c, k))
             g.set(self.vl.cycles, "pass_debug_sample_count", False)
             g.set(self.scene.render, "filepath", self.scene.render.filepath)
+            # every render a fresh session, as an artist's render: with persistent
+            # data Cycles keeps the blue-noise table of the session's first sample
+            # count, and a later render with another count used that stale table
+            # (bpy 4.5: 4 spp after 16 spp = the first 4 samples of the 16-spp
+            # sequence, not Cycles' 4-spp render)
+            g.set(self.scene.render, "use_persistent_data", False)
         except BaseException:
             self.__exit__(None, None, None)
             raise

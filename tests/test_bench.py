@@ -657,3 +657,28 @@ def test_the_runs_safety_cap_stops_like_a_cancel_and_keeps_the_samples(monkeypat
     full = AdaptiveRun(ex2, Options(**opts))
     assert session._run_capped(full, 0.0) is False
     assert abs(full.samples_rendered - 64 * 96) <= 0.01 * 64 * 96 + 1
+
+
+def test_plain_cycles_renders_each_count_as_a_fresh_render(tmp_path):
+    """The plain-Cycles peer renders every sample count with its own
+    blue-noise table: 4 spp after 16 spp in one session equals a 4-spp render
+    of a fresh session (with persistent data it was the first 4 samples of
+    the 16-spp sequence)."""
+    from blend_util import save_scene
+    from cycles_adaptive.bench.peers import PlainCycles
+    path = tmp_path / "s.blend"
+    save_scene(path, width=24, height=16)
+    bpy.ops.wm.open_mainfile(filepath=str(path))
+    scene = bpy.context.scene
+    try:
+        scene.cycles.sampling_pattern = "BLUE_NOISE"
+    except TypeError:
+        pytest.skip("this Blender has no blue-noise pattern")
+    vl = scene.view_layers[0]
+    with PlainCycles(scene, vl, 0, "BLUE_NOISE") as pc:
+        fresh = pc.render(4)["rgb"]
+    with PlainCycles(scene, vl, 0, "BLUE_NOISE") as pc:
+        sixteen = pc.render(16)["rgb"]
+        after = pc.render(4)["rgb"]
+    np.testing.assert_array_equal(after, fresh)
+    assert not np.array_equal(sixteen, fresh)

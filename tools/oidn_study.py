@@ -15,6 +15,7 @@ again.  Subcommands (from the repository root):
     .venv/bin/python tools/oidn_study.py cost --size 512        # s/MP: pyoidn vs Cycles' own OIDN
     .venv/bin/python tools/oidn_study.py calib --seeds 0 --spp 4,8,16 --reps 8
         # the estimate's terms against Var[D] and MSE over disjoint realisations
+    .venv/bin/python tools/oidn_study.py peer --seeds 0,1 --spp 8,16   # pyoidn vs Cycles' OIDN, same render
 
 ``--data`` (default out/oidn_study) holds the renders and results; ``--refs``
 (default /work/refs) the 1024-spp references (bench/references.py names).
@@ -392,10 +393,66 @@ def exp_calib(args):
                       flush=True)
 
 
+def exp_peer(args):
+    """Our OIDN call against Cycles' own on the very same render: one plain
+    render per scene, seed, pattern and spp with Cycles' OIDN on (accurate,
+    high) that also stores its inputs (Noisy Image, Denoising Albedo and
+    Normal); pyoidn then denoises those inputs as oidn_filter does.  Separates
+    the denoiser call from the sampling pattern (Tabulated Sobol in our loop)
+    in the gap between the ``oidn`` method and the cycles_oidn peer."""
+    import tempfile
+    import bpy
+    from cycles_adaptive.addon.executor import quiet_stdout
+    from cycles_adaptive.core import io as imageio
+    tmp = tempfile.mkdtemp()
+    rows = []
+    for scene in args.scenes:
+        truth = best_ref(scene)
+        for seed in args.seeds:
+            for pattern in args.patterns.split(","):
+                for spp in args.spp:
+                    bpy.ops.wm.open_mainfile(filepath=os.path.join(ROOT, "sample_blends", f"{scene}.blend"))
+                    s = bpy.context.scene
+                    s.frame_set(1)
+                    c = s.cycles
+                    c.samples, c.seed, c.use_animated_seed = int(spp), seed, False
+                    c.sampling_pattern = pattern
+                    c.use_adaptive_sampling = False
+                    c.use_denoising, c.denoiser = True, "OPENIMAGEDENOISE"
+                    c.denoising_input_passes, c.denoising_prefilter = "RGB_ALBEDO_NORMAL", "ACCURATE"
+                    if hasattr(c, "denoising_quality"):
+                        c.denoising_quality = "HIGH"
+                    c.denoising_use_gpu = False
+                    s.render.use_compositing = False
+                    bpy.context.view_layer.cycles.denoising_store_passes = True
+                    if hasattr(s.render.image_settings, "media_type"):
+                        s.render.image_settings.media_type = "MULTI_LAYER_IMAGE"
+                    s.render.image_settings.file_format = "OPEN_EXR_MULTILAYER"
+                    s.render.image_settings.color_depth = "32"
+                    s.render.filepath = os.path.join(tmp, "r.exr")
+                    with quiet_stdout():
+                        bpy.ops.render.render(write_still=True)
+                    p = imageio.read_layers(s.render.filepath)[0]
+                    noisy = p["Noisy Image"][..., :3].astype(np.float64)
+                    theirs = p["Combined"][..., :3].astype(np.float64)
+                    ours = oidn.oidn_filter(noisy, p["Denoising Albedo"][..., :3], p["Denoising Normal"][..., :3],
+                                            prefilter="accurate", quality="high", backend="pyoidn")
+                    r = {"scene": scene, "seed": seed, "pattern": pattern, "spp": spp,
+                         "noisy": relmse(noisy, truth), "cycles_oidn": relmse(theirs, truth),
+                         "pyoidn": relmse(ours, truth), "apart": relmse(ours, theirs)}
+                    rows.append(r)
+                    print(f"{scene:>12} seed {seed} {pattern:>15} {spp:4.0f} spp: noisy {r['noisy']:.3e} | "
+                          f"Cycles' OIDN {r['cycles_oidn']:.3e} | pyoidn on its inputs {r['pyoidn']:.3e} "
+                          f"({r['pyoidn'] / r['cycles_oidn']:.3f}x) | the two apart {r['apart']:.2e}", flush=True)
+    if args.out:
+        with open(args.out, "w") as f:
+            json.dump(rows, f, indent=1)
+
+
 def main():
     global ARGS
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("exp", choices=("render", "rate", "estimate", "loop", "mc", "cost", "calib"))
+    ap.add_argument("exp", choices=("render", "rate", "estimate", "loop", "mc", "cost", "calib", "peer"))
     ap.add_argument("--data", default=os.path.join(ROOT, "out", "oidn_study"))
     ap.add_argument("--refs", default="/work/refs")
     ap.add_argument("--samples", type=int, default=128)
@@ -411,10 +468,11 @@ def main():
     ap.add_argument("--reps", type=int, default=48)
     ap.add_argument("--reps-cost", type=int, default=3)
     ap.add_argument("--size", type=int, default=512)
+    ap.add_argument("--patterns", default="AUTOMATIC,TABULATED_SOBOL")
     ARGS = args = ap.parse_args()
     TASK_COST[0] = args.task_cost
     {"render": exp_render, "rate": exp_rate, "estimate": exp_estimate, "loop": exp_loop, "mc": exp_mc,
-     "cost": exp_cost, "calib": exp_calib}[args.exp](args)
+     "cost": exp_cost, "calib": exp_calib, "peer": exp_peer}[args.exp](args)
 
 
 if __name__ == "__main__":
