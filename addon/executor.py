@@ -297,8 +297,22 @@ class CyclesExecutor:
         self.tmpdir = tmpdir or tempfile.mkdtemp(prefix="cycles-adaptive-")
         self.guard = SettingsGuard()
         self.renders = 0
+        self.hold = None             # hold_samples_at: the run's one final count
+        self.pattern = None          # the sampling pattern the renders use (after entering)
 
     # -------------------------------------------------------------- lifecycle
+    def hold_samples_at(self, count: int) -> None:
+        """Before entering: every pixel of this run ends with samples ``[0,
+        count)`` (uniform sampling at a known count), so on Blender 4.4+ the
+        renders keep the scene's own sampling pattern with ``samples`` held at
+        ``count`` (each subset through ``sample_subset_length``): the merged
+        subsets are then that pattern's ``count``-spp render, Blue Noise's
+        count-tuned table included (checked with bpy 4.5: equal within
+        float32 rounding; with ``samples = offset + length`` they are not).
+        Elsewhere (4.2 / 4.3, or not called) Tabulated Sobol, whose subsets of
+        any length merge exactly."""
+        self.hold = max(1, int(count))
+
     def __enter__(self):
         try:
             self._configure()
@@ -324,6 +338,9 @@ class CyclesExecutor:
         r, c, vl = s.render, s.cycles, self.view_layer
         g.set(r, "use_compositing", False)
         g.set(r, "use_sequencer", False)
+        # a fresh session: switching persistent data off frees the last one,
+        # whose blue-noise table was built for its first render's sample count
+        g.set(r, "use_persistent_data", False)
         g.set(r, "use_persistent_data", True)
         g.set(r, "use_single_layer", True)
         # and the other view layers off: Blender 5.0 fails to write the second
@@ -349,10 +366,14 @@ class CyclesExecutor:
         # total sample count and, with persistent data, on earlier renders:
         # subsets of different lengths then do not merge.  Tabulated Sobol
         # indexes samples independently of the count: exact merges (tested).
-        try:
-            g.set(c, "sampling_pattern", "TABULATED_SOBOL")
-        except TypeError:  # a version without it: its only pattern is count-independent
-            pass
+        # A count held for the whole run (hold_samples_at) keeps the scene's own pattern.
+        if self.hold is None or not hasattr(c, "use_sample_subset"):
+            self.hold = None
+            try:
+                g.set(c, "sampling_pattern", "TABULATED_SOBOL")
+            except TypeError:  # a version without it: its only pattern is count-independent
+                pass
+        self.pattern = str(getattr(c, "sampling_pattern", ""))
         g.set(c, "samples", c.samples)
         g.set(c, "sample_offset", c.sample_offset)
         if hasattr(c, "use_sample_subset"):
@@ -409,7 +430,7 @@ class CyclesExecutor:
         for attr, value in regions.border_from_pixels(x0, y0, x1, y1, self.full_w, self.full_h).items():
             setattr(r, attr, float(value))
         if hasattr(c, "use_sample_subset"):  # 4.4+
-            c.samples = int(task.offset + task.samples)
+            c.samples = max(int(task.offset + task.samples), self.hold or 0)
             c.sample_offset = int(task.offset)
             c.sample_subset_length = int(task.samples)
         else:  # 4.2 / 4.3

@@ -35,7 +35,7 @@ import numpy as np
 from ..core import methods as methods_registry
 from ..core import metrics
 from ..core.method import relative_error
-from ..core.pipeline import AdaptiveRun, Options, render_subsets
+from ..core.pipeline import AdaptiveRun, Options, held_count, render_subsets
 from ..core.resources import peak_rss_mb
 from . import references as refs
 from .peers import PlainCycles, run_peers
@@ -355,8 +355,12 @@ class Session:
             mod = methods_registry.get(name)
             wrapped = OracleMethod(mod, ref) if oracle else UniformSampling(mod) if uniform else None
             t0 = time.perf_counter()
-            with CyclesExecutor(scene, vl, tuple(mod.PASSES), seed=self.cfg["seed"]) as exe:
-                opts = Options(method=name, spp=float(budget), frame=frame, seed=self.cfg["seed"])
+            opts = Options(method=name, spp=float(budget), frame=frame, seed=self.cfg["seed"])
+            exe = CyclesExecutor(scene, vl, tuple(mod.PASSES), seed=self.cfg["seed"])
+            hold = held_count(opts, wrapped or methods_registry.method_for(name, opts.params))
+            if hold is not None:  # as the job does: the scene's pattern at the run's one count
+                exe.hold_samples_at(hold)
+            with exe:
                 run = AdaptiveRun(exe, opts, method=wrapped)
                 capped = _run_capped(run, self.cfg["run_max_seconds"])
                 result = run.reconstruct()

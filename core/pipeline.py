@@ -118,6 +118,13 @@ class Options:
                                 "run may render, and each round renders what the error's measured "
                                 "convergence predicts reaches it, at most doubling the samples "
                                 "(iterations is ignored)", 0.0, None, label="Target Error", soft_max=1.0)
+    #: Tabulated Sobol merges subsets of any length exactly; a count-tuned pattern
+    #: (Blue Noise) only with the count held (CyclesExecutor.hold_samples_at)
+    scene_pattern: bool = param(True, "a run that samples uniformly at a whole spp (uniform, oidn "
+                                "without adaptive sampling; no time limit or target) renders with the "
+                                "scene's own sampling pattern, as plain Cycles does (Blender 4.4+); off: "
+                                "Tabulated Sobol, the same noise on every Blender version",
+                                label="Scene's Sampling Pattern")
     params: dict = field(default_factory=dict, metadata={"cli": False, "ui": False})
     #: extra passes to read beyond the method's own
     features: tuple = field(default=(), metadata={"cli": False, "ui": False})
@@ -1016,6 +1023,23 @@ def selects(method) -> bool:
     return all(hasattr(method, m) for m in ("cv_regions", "select", "resolve"))
 
 
+def held_count(options: Options, method, prior=None) -> int | None:
+    """The one sample count every pixel of a run ends with, known before its
+    first render: a method that samples uniformly (``ADAPTIVE`` off, not a
+    selecting one) at an integral ``spp``, without a time limit, a target
+    error or samples carried from an earlier frame (``prior``), with
+    ``Options.scene_pattern`` on; its initial
+    pass renders the whole budget as subsets of ``[0, spp)``.  None
+    otherwise.  An executor may then render with a count-tuned pattern
+    (``CyclesExecutor.hold_samples_at``)."""
+    spp = float(options.spp)
+    if not options.scene_pattern or method.ADAPTIVE or selects(method) or prior is not None:
+        return None
+    if options.max_seconds > 0 or options.target_error > 0 or spp < 1 or spp != np.floor(spp):
+        return None
+    return int(spp)
+
+
 def _within(plan, limit: int):
     """(tasks, covered) of a plan with its last tasks dropped until it covers
     at most ``limit`` samples."""
@@ -1169,5 +1193,7 @@ def _options_key(o: Options) -> dict:
     d.pop("max_seconds", None)
     if not d.get("target_error"):  # checkpoints from before the option resume
         d.pop("target_error", None)
+    if d.get("scene_pattern", True):  # likewise (an adaptive run renders Tabulated Sobol either way)
+        d.pop("scene_pattern", None)
     d["features"] = list(d["features"])
     return json.loads(json.dumps(d, sort_keys=True, default=str))

@@ -38,7 +38,7 @@ from ..core import cryptomatte
 from ..core import io as imageio
 from ..core import methods, metrics
 from ..core.method import consistency_guard, params_from_dict
-from ..core.pipeline import CRYPTOMATTE_SLACK, AdaptiveRun, Options, Progress, Work, option_fields
+from ..core.pipeline import CRYPTOMATTE_SLACK, AdaptiveRun, Options, Progress, Work, held_count, option_fields
 from ..core.resources import peak_rss_mb
 from ..core.storage import buffers_from_passes, buffers_to_passes
 
@@ -507,6 +507,9 @@ class RenderJob:
                                               tuple(self.method.PASSES) + tuple(self.options.features),
                                               seed=self.options.seed)
         self.reference = load_reference(self.reference_path, self.executor.size)
+        hold = held_count(self.options, self.method, self.prior)
+        if hold is not None and hasattr(self.executor, "hold_samples_at"):  # optional executor member
+            self.executor.hold_samples_at(hold)
         with self.executor:
             self.camera = self.executor.camera_info(self.options.frame)
             self.run = AdaptiveRun(self.executor, self.options, checkpoint=self.ckpt, prior=self.prior,
@@ -650,6 +653,9 @@ class RenderJob:
             "reprojected_fraction": float((run.reused > 0).mean()),
             "blender": bpy.app.version_string,
         })
+        pattern = getattr(self.executor, "pattern", None)
+        if pattern:  # Tabulated Sobol, or the scene's own with the count held (hold_samples_at)
+            summary["sampling_pattern"] = pattern
         _info_fields(summary, result.info)
         _info_fields(summary, run.prior_info, "reproject_")
         if run.selection is not None:  # auto: what it chose, each candidate's prediction, why

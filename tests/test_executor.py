@@ -133,3 +133,45 @@ def test_the_users_last_render_keeps_its_slot():
         _render_full(ex, 1)
     assert rr.render_slots.active_index == 2
     assert scene.render.filepath == "/tmp/cycles-adaptive-user-render.png"
+
+
+def _merged_uniform(scene, spp, hold):
+    """``uniform`` through the loop at ``spp`` (4 subsets); the executor
+    holds the count when ``hold``.  (mean colour, executor)."""
+    ex = CyclesExecutor(scene, bpy.context.view_layer, (), seed=0)
+    if hold:
+        ex.hold_samples_at(spp)
+    with ex:
+        run = AdaptiveRun(ex, Options(method="uniform", spp=float(spp), subsets=4, seed=0))
+        for _ in run.steps():
+            pass
+    return run.buffers.color.mean, ex
+
+
+def test_a_held_count_renders_the_scenes_own_pattern_and_merges_into_its_render():
+    """With the run's one count held (Blender 4.4+), the subsets of a
+    Blue Noise scene merge into Blue Noise's render at that count, the one
+    plain Cycles gives; without it (or on 4.2 / 4.3) the loop renders
+    Tabulated Sobol."""
+    from cycles_adaptive.bench.peers import PlainCycles
+    scene = build_scene(24, 16)
+    try:
+        scene.cycles.sampling_pattern = "BLUE_NOISE"
+    except TypeError:
+        pytest.skip("this Blender has no blue-noise pattern")
+    held, ex = _merged_uniform(scene, 12, hold=True)
+    free, ex_free = _merged_uniform(scene, 12, hold=False)
+    assert scene.cycles.sampling_pattern == "BLUE_NOISE"  # restored
+    assert ex_free.pattern == "TABULATED_SOBOL"
+    with PlainCycles(scene, bpy.context.view_layer, 0, "BLUE_NOISE") as pc:
+        blue = pc.render(12)["rgb"]
+    with PlainCycles(scene, bpy.context.view_layer, 0, "TABULATED_SOBOL") as pc:
+        sobol = pc.render(12)["rgb"]
+    np.testing.assert_allclose(free, sobol, rtol=1e-5, atol=1e-6)
+    if hasattr(scene.cycles, "use_sample_subset"):  # 4.4+
+        assert ex.pattern == "BLUE_NOISE"
+        np.testing.assert_allclose(held, blue, rtol=1e-5, atol=1e-6)
+        assert np.abs(held - free).max() > 1e-3  # the patterns do differ here
+    else:
+        assert ex.pattern == "TABULATED_SOBOL" and ex.hold is None
+        np.testing.assert_allclose(held, sobol, rtol=1e-5, atol=1e-6)
