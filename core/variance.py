@@ -346,11 +346,13 @@ def _pool_region(m2c, fac, inv_d, guides, r):
     ``sum_q w M2_q``, ``sum_q w f_q`` and (``inv_d`` given) ``sum_q (w f_q)^2
     / d_q``.  The weight is symmetric, so each pair's weight is computed
     once (half the offsets) and added to both pixels.  Without guides every
-    weight is 1: box sums, separable (:func:`_box_sum`)."""
+    weight is 1: clipped box sums (:func:`core.filters.box_sum`, which adds
+    the same elements in the same order in any row band)."""
     h, w = m2c.shape[:2]
     if not guides:
-        den2 = None if inv_d is None else _box_sum(fac * fac * inv_d, r)
-        return _box_sum(m2c, r), _box_sum(fac, r), den2
+        from .filters import box_sum
+        den2 = None if inv_d is None else box_sum(fac * fac * inv_d, r)
+        return box_sum(m2c, r), box_sum(fac, r), den2
     num, den = m2c.copy(), fac.copy()
     den2 = fac * fac * inv_d if inv_d is not None else None
     for dy in range(0, r + 1):
@@ -375,23 +377,6 @@ def _pool_region(m2c, fac, inv_d, guides, r):
                 den2[P] += wfq * wfq * inv_d[Q]
                 den2[Q] += wfp * wfp * inv_d[P]
     return num, den, den2
-
-
-def _box_sum(a: np.ndarray, r: int) -> np.ndarray:
-    """Sum of ``a`` (H, W, ...) over the (2r+1)^2 window of each pixel,
-    clipped at the edges: a row pass then a column pass of shifted adds (each
-    pixel's sum runs over the same offsets in the same order whatever the
-    block, so bands give the same bits)."""
-    h, w = a.shape[:2]
-    rows = a.copy()
-    for d in range(1, min(r, w - 1) + 1):
-        rows[:, d:] += a[:, :w - d]
-        rows[:, :w - d] += a[:, d:]
-    out = rows.copy()
-    for d in range(1, min(r, h - 1) + 1):
-        out[d:] += rows[:h - d]
-        out[:h - d] += rows[d:]
-    return out
 
 
 # ------------------------------------------------------------------- public
