@@ -35,7 +35,7 @@ import numpy as np
 from ..core import methods as methods_registry
 from ..core import metrics
 from ..core.method import relative_error
-from ..core.pipeline import AdaptiveRun, Options, held_count, render_subsets
+from ..core.pipeline import AdaptiveRun, Options, hold_samples, render_subsets
 from ..core.resources import peak_rss_mb
 from . import references as refs
 from .peers import PlainCycles, run_peers
@@ -357,9 +357,8 @@ class Session:
             t0 = time.perf_counter()
             opts = Options(method=name, spp=float(budget), frame=frame, seed=self.cfg["seed"])
             exe = CyclesExecutor(scene, vl, tuple(mod.PASSES), seed=self.cfg["seed"])
-            hold = held_count(opts, wrapped or methods_registry.method_for(name, opts.params))
-            if hold is not None:  # as the job does: the scene's pattern at the run's one count
-                exe.hold_samples_at(hold)
+            # as the job does: the scene's pattern at the run's one count
+            hold_samples(exe, opts, wrapped or methods_registry.method_for(name, opts.params))
             with exe:
                 run = AdaptiveRun(exe, opts, method=wrapped)
                 capped = _run_capped(run, self.cfg["run_max_seconds"])

@@ -14,7 +14,11 @@ and tests may use any object with the same two members:
 and optionally ``render_many(tasks) -> iterator of (color, features)``, which
 may render an iteration's tasks in parallel (e.g. on farm workers) but yields
 the results in task order: the loop merges them in that order, so the image
-does not depend on which executor rendered it.
+does not depend on which executor rendered it; ``drop_passes(names)``, which
+stops rendering feature passes that carry no information; and
+``hold_samples_at(count)``, called before entering when every pixel of the run
+ends at one known count (:func:`hold_samples`), so the renders may use a
+count-tuned sampling pattern.
 
 ``AdaptiveRun.steps()`` is a generator of ``Progress`` records, so the modal
 operator (a timer steps it), the batch CLI (a for loop printing lines) and the
@@ -1038,6 +1042,18 @@ def held_count(options: Options, method, prior=None) -> int | None:
     if options.max_seconds > 0 or options.target_error > 0 or spp < 1 or spp != np.floor(spp):
         return None
     return int(spp)
+
+
+def hold_samples(executor, options: Options, method, prior=None) -> int | None:
+    """Tell ``executor`` the run's one final count (:func:`held_count`)
+    through its optional ``hold_samples_at``, before it is entered; the
+    count, or None where there is none (or the executor cannot hold it)."""
+    count = held_count(options, method, prior)
+    hold = getattr(executor, "hold_samples_at", None)  # optional member, see module notes
+    if count is None or hold is None:
+        return None
+    hold(count)
+    return count
 
 
 def _within(plan, limit: int):

@@ -38,7 +38,7 @@ from ..core import cryptomatte
 from ..core import io as imageio
 from ..core import methods, metrics
 from ..core.method import consistency_guard, params_from_dict
-from ..core.pipeline import CRYPTOMATTE_SLACK, AdaptiveRun, Options, Progress, Work, held_count, option_fields
+from ..core.pipeline import CRYPTOMATTE_SLACK, AdaptiveRun, Options, Progress, Work, hold_samples, option_fields
 from ..core.resources import peak_rss_mb
 from ..core.storage import buffers_from_passes, buffers_to_passes
 
@@ -507,9 +507,7 @@ class RenderJob:
                                               tuple(self.method.PASSES) + tuple(self.options.features),
                                               seed=self.options.seed)
         self.reference = load_reference(self.reference_path, self.executor.size)
-        hold = held_count(self.options, self.method, self.prior)
-        if hold is not None and hasattr(self.executor, "hold_samples_at"):  # optional executor member
-            self.executor.hold_samples_at(hold)
+        hold_samples(self.executor, self.options, self.method, self.prior)
         with self.executor:
             self.camera = self.executor.camera_info(self.options.frame)
             self.run = AdaptiveRun(self.executor, self.options, checkpoint=self.ckpt, prior=self.prior,

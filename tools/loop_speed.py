@@ -44,7 +44,6 @@ class Clock:
 
     def __init__(self):
         self.reset()
-        self._render = bpy.ops.render.render
         self._read = imageio.read_layers
         clock = self
 
