@@ -175,12 +175,15 @@ def layer_passes(result_rgba: np.ndarray, features: dict, names) -> dict:
     return passes
 
 
-def composite(scene, layers: dict, tmpdir: str | None = None, attributes: dict | None = None) -> np.ndarray:
+def composite(scene, layers: dict, tmpdir: str | None = None, attributes: dict | None = None,
+              file_outputs: bool = True) -> np.ndarray:
     """Run the compositor of ``scene`` on ``layers`` (view layer name -> the
     :func:`layer_passes` of that layer, all one size) and return the
     composited (H, W, 4) float32 image.  The scene is not modified: a
     temporary copy composites it, and File Output nodes write where the
-    user's tree says.  CompositorError when the compositor gave no image.
+    user's tree says (``file_outputs`` False: the copy's File Output nodes
+    are removed, so nothing is written there: a time limit's trial run on a
+    band of rows).  CompositorError when the compositor gave no image.
     ``attributes``: header attributes of the layers' file (the result's
     ``cryptomatte/<key>/...``, which Cryptomatte nodes read)."""
     from .executor import quiet_stdout
@@ -206,6 +209,9 @@ def composite(scene, layers: dict, tmpdir: str | None = None, attributes: dict |
         else:
             tree = copy.node_tree
         _feed(tree, img, crypto_names)
+        if not file_outputs:
+            for node in [n for n in tree.nodes if n.bl_idname == "CompositorNodeOutputFile"]:
+                tree.nodes.remove(node)
         r = copy.render
         r.use_compositing, r.use_sequencer = True, False
         r.use_border, r.use_crop_to_border = False, False

@@ -301,9 +301,11 @@ class AdaptiveRun:
         self.reserve_seconds = 0.0
         #: optional ``probe(buffers) -> seconds``: a time-limited run calls it
         #: once, after the initial pass's first subset (as a Work, pure: no
-        #: bpy), and keeps what it returns in reserve_seconds (the job: its
-        #: output's write)
+        #: bpy unless reserve_probe_main_thread), and keeps what it returns
+        #: in reserve_seconds (the job: its outputs' write, compositor and
+        #: preview)
         self.reserve_probe = None
+        self.reserve_probe_main_thread = False
         self.reconstruct_estimate: float | None = None
         self._round_seconds: float | None = None   # a round's seconds besides its renders
         self._round_tasks = 0                      # renders of the latest round
@@ -412,7 +414,7 @@ class AdaptiveRun:
         if self.reserve_probe is not None:
             probe, buf = self.reserve_probe, self.buffers
             self.reserve_probe = None
-            work = Work(lambda: probe(buf), "timing the output's write")
+            work = Work(lambda: probe(buf), "timing the output's write", self.reserve_probe_main_thread)
             yield Progress("adapt", 0, self._fraction(), work.label, work=work)
             self.reserve_seconds = float(work.result())
         if selects(self.method):

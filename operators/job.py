@@ -418,11 +418,12 @@ def check_outputs(out: str, preview: bool, may_replace: bool) -> None:
         raise JobError(str(exc)) from None
 
 
-def run_compositor(scene, plan, outputs) -> tuple:
+def run_compositor(scene, plan, outputs, file_outputs: bool = True) -> tuple:
     """``(image, note)``: the scene's compositor (``plan``:
     :func:`composite_plan`) on ``outputs``, ``[(view layer name, Output)]``,
     each fed its result and the feature passes the plan names (main thread:
-    bpy); ``(None, "skipped: why")`` when it cannot run."""
+    bpy); ``(None, "skipped: why")`` when it cannot run.  ``file_outputs``:
+    see :func:`addon.compositor.composite`."""
     from ..addon import compositor
     try:
         layers, attributes = {}, {}
@@ -431,9 +432,60 @@ def run_compositor(scene, plan, outputs) -> tuple:
             layers[name] = compositor.layer_passes(_array(out.passes["Combined"]), feats, plan.features(name))
             layers[name].update({k: v for k, v in out.passes.items() if k.startswith(CRYPTOMATTE_PREFIXES)})
             attributes.update({k: v for k, v in out.attributes.items() if k.startswith("cryptomatte/")})
-        return compositor.composite(scene, layers, attributes=attributes), "applied"
+        return compositor.composite(scene, layers, attributes=attributes, file_outputs=file_outputs), "applied"
     except (compositor.CompositorError, KeyError) as exc:
         return None, f"skipped: {exc}"
+
+
+def output_seconds(scene, layer_names, buf, exr, out: str, plan=None, preview: bool = False) -> float:
+    """Seconds the outputs of a frame are predicted to take, for a time
+    limit's reserve: the EXR (one layer per name of ``layer_names``, each
+    ``buf``'s passes, stored as ``exr`` says), then the scene's compositor
+    on them when ``plan`` (:func:`composite_plan`) says it runs (File Output
+    nodes removed from its copy: nothing is written where the user's tree
+    says), then the preview PNG when ``preview``, all written to temporary
+    files beside ``out`` and deleted.  Timed on two centre bands of rows (an
+    eighth and a quarter of the frame, at least 16 and 32 rows: smaller bands
+    gave slopes half the frame's) and extrapolated to the frame by the line
+    through both (:func:`core.timeplan.extrapolate_seconds`: the
+    compositor's fixed cost, a scene copy and a render call, is not scaled
+    with the rows); a frame of at most 32 rows is timed whole.  Calls bpy when ``plan`` or ``preview``
+    (main thread)."""
+    from ..addon.executor import write_preview
+    from ..core import timeplan
+    h, w = buf.shape
+
+    def band_seconds(rows: int) -> float:
+        y0 = (h - rows) // 2
+        band = buf.crop(0, y0, w, y0 + rows)
+        var = band.variance_of_mean().mean(axis=-1)
+        passes = buffers_to_passes(band, band.color.mean, np.where(np.isfinite(var), var, 0.0))
+        passes["NextIndex"] = np.zeros((rows, w))
+        names = list(layer_names)
+        result = Output(passes, names[0], {}, {}, [(n, passes) for n in names[1:]], exr=exr)
+        tmp = imageio.temp_beside(out, ".exr")
+        png = imageio.temp_beside(out, ".png")
+        t0 = time.perf_counter()
+        try:
+            write_output(result, tmp)
+            shown = None
+            if plan is not None:
+                shown, _ = run_compositor(scene, plan, [(n, result) for n in names], file_outputs=False)
+            if preview:
+                write_preview(scene, shown if shown is not None else _array(passes["Combined"]), png)
+            return time.perf_counter() - t0
+        finally:
+            for path in (tmp, png):
+                if os.path.exists(path):
+                    os.unlink(path)
+
+    large = min(h, max(32, h // 4))
+    if large == h:
+        return band_seconds(h)
+    small = min(large - 1, max(16, h // 8))
+    t_large = band_seconds(large)  # first: a one-time set-up it pays steepens the line (reserve more, not less)
+    t_small = band_seconds(small)
+    return timeplan.extrapolate_seconds(small * w, t_small, large * w, t_large, h * w)
 
 
 class RenderJob:
@@ -501,6 +553,10 @@ class RenderJob:
         self.t0 = time.perf_counter()
         self.summary: dict | None = None
         self._output: Output | None = None
+        #: a job without ``out`` (one layer of a LayersJob): optional
+        #: ``probe(buffers) -> seconds`` of the outputs written for it, called
+        #: once by a time-limited run (main thread) and reserved
+        self.output_probe = None
 
     def steps(self):
         self.executor = self.executor_factory(self.scene, self.view_layer,
@@ -512,8 +568,11 @@ class RenderJob:
             self.camera = self.executor.camera_info(self.options.frame)
             self.run = AdaptiveRun(self.executor, self.options, checkpoint=self.ckpt, prior=self.prior,
                                    method=self.method, started=self.t0)
-            if self.out and self.run.timed:
-                self.run.reserve_probe = self._time_output
+            probe = self._time_output if self.out else self.output_probe
+            if probe is not None and self.run.timed:
+                self.run.reserve_probe = probe
+                self.run.reserve_probe_main_thread = self.out is None or self.preview \
+                    or self.composite_plan is not None
             if self.resume:
                 try:
                     self.run.load_checkpoint(self.ckpt)
@@ -530,28 +589,11 @@ class RenderJob:
             yield Progress("write", run.iteration, fraction, f"writing {self.out}")
 
     def _time_output(self, buf) -> float:
-        """Seconds the output's EXR is predicted to take to write, for a time
-        limit's reserve: the passes of a band of ``buf``'s rows (an eighth, at
-        least 16) written as the output is, to a temporary file beside it,
-        timed and scaled by the rows.  The preview and the compositor are not
-        included.  Pure (numpy and OpenImageIO): a worker thread may run it."""
-        h, w = buf.shape
-        rows = min(h, max(16, h // 8))
-        y0 = (h - rows) // 2
-        band = buf.crop(0, y0, w, y0 + rows)
-        var = band.variance_of_mean().mean(axis=-1)
-        passes = buffers_to_passes(band, band.color.mean, np.where(np.isfinite(var), var, 0.0))
-        passes["NextIndex"] = np.zeros((rows, w))
-        out = Output(passes, self.layer_name, {}, {}, exr=self.exr)
-        tmp = imageio.temp_beside(self.out, ".exr")
-        try:
-            t0 = time.perf_counter()
-            write_output(out, tmp)
-            seconds = time.perf_counter() - t0
-        finally:
-            if os.path.exists(tmp):
-                os.unlink(tmp)
-        return seconds * h / rows
+        """Seconds this job's outputs are predicted to take, for a time
+        limit's reserve (:func:`output_seconds`: the EXR, the compositor when
+        it runs, the preview)."""
+        return output_seconds(self.scene, [self.layer_name], buf, self.exr, self.out,
+                              self.composite_plan, self.preview)
 
     def reconstruct_work(self) -> Work:
         """The final reconstruction (``AdaptiveRun.reconstruct`` with this
@@ -907,13 +949,41 @@ class LayersJob:
 
     def steps(self):
         n = len(self.jobs)
+        if self.options.max_seconds > 0 and self.out:
+            self.jobs[0].output_probe = self._time_outputs
         for i, job in enumerate(self.jobs):
             self.job = job
+            if self.options.max_seconds > 0:
+                self._share_limit(i)
             for p in job.steps():
                 p.message = f"view layer {job.layer_name} ({i + 1}/{n}): {p.message}"
                 p.fraction = (i + p.fraction) / n
                 yield p
         yield Progress("write", self.job.run.iteration, 1.0, f"writing {self.out}")
+
+    def _time_outputs(self, buf) -> float:
+        """Seconds the EXR of every layer, the compositor and the preview are
+        predicted to take (:func:`output_seconds` with ``buf``, the first
+        layer's buffers, standing in for each layer)."""
+        return output_seconds(self.scene, self.names, buf, self.jobs[0].exr, self.out,
+                              self.composite_plan, self.preview)
+
+    def _share_limit(self, i: int) -> None:
+        """Give layer ``i`` its share of ``Options.max_seconds``, which bounds
+        the whole job: what is left (less the final reconstructions of the
+        layers already sampled, which run at the end, and the outputs'
+        reserve the first layer measured and kept in its own) split evenly
+        over the layers still to render, on a clock started now."""
+        job = self.jobs[i]
+        left = self.options.max_seconds - (time.perf_counter() - self.t0)
+        for j in self.jobs[:i]:
+            if j.run is not None:
+                left -= float(j.run.reconstruct_estimate or 0.0)
+                if j is self.jobs[0]:
+                    left -= max(float(j.run.reserve_seconds), 0.0)
+        share = max(left / (len(self.jobs) - i), 1e-3)  # > 0: 0 would mean no limit
+        job.options = dataclasses.replace(job.options, max_seconds=share)
+        job.t0 = time.perf_counter()
 
     def finish(self, partial: bool = False, reconstruct: bool = True) -> dict:
         """Reconstruct every layer, write the EXR and the preview (inline)."""
@@ -985,6 +1055,10 @@ class LayersJob:
         s["spp_mean"] = s["samples"] / max(1, sum(v["width"] * v["height"] for v in per.values()))
         s["estimated_relmse"] = max(v["estimated_relmse"] for v in per.values())
         s["reconstructed"] = all(v["reconstructed"] for v in per.values())
+        s["max_seconds"] = self.options.max_seconds  # the job's limit (each layer ran on a share)
+        s["time_limited"] = any(v.get("time_limited") for v in per.values())
+        if self.options.max_seconds > 0:
+            s["reserved_seconds"] = sum(v.get("reserved_seconds") or 0.0 for v in per.values())
         s.update(view_layers=[j.layer_name for j in jobs], out=self.out, compositor=note,
                  preview=preview_path(self.out) if self.preview else None, partial=bool(partial),
                  not_rendered=[j.layer_name for j in self.jobs if j not in jobs],

@@ -182,3 +182,75 @@ def test_single_channel_passes_are_fed_depth_from_the_first_sample_mist_averaged
     assert hit.any() and (0 < mist[hit]).all() and (mist <= 1).all()
     assert 2 < z[hit].min() < z[hit].max() < 20  # camera 6.7 units from the origin
     np.testing.assert_allclose(comp["Combined"][..., 0][hit], (z + mist)[hit], rtol=1e-5)
+
+
+def _file_output_node(tree, image_socket, folder):
+    """A File Output node writing ``image_socket`` into ``folder`` (4.2-4.5:
+    ``base_path`` and its default "Image" input; 5.0: ``directory``, one item)."""
+    node = tree.nodes.new("CompositorNodeOutputFile")
+    if hasattr(node, "directory"):  # 5.0
+        node.directory, node.file_name = folder + os.sep, "fo_"
+        if not len(node.file_output_items):  # a new node has only the virtual "add" socket
+            node.file_output_items.new("RGBA", "Image")
+    else:
+        node.base_path = os.path.join(folder, "fo_")
+    tree.links.new(image_socket, node.inputs[0])
+    return node
+
+
+def test_a_trial_composite_writes_nothing_where_the_users_file_outputs_point(tmp_path):
+    """``file_outputs=False`` (the time limit's trial on a band) removes the
+    copy's File Output nodes: the user's folder stays empty, while a real
+    composite writes there; the user's tree keeps its node either way."""
+    from cycles_adaptive.addon import compositor
+    scene = build_scene(24, 16)
+    tree, out = compositor_tree(scene)
+    rl = tree.nodes.new("CompositorNodeRLayers")
+    tree.links.new(rl.outputs["Image"], out.inputs[0])
+    folder = str(tmp_path / "file_outputs")
+    _file_output_node(tree, rl.outputs["Image"], folder)
+    rgba = np.random.default_rng(0).random((16, 24, 4)).astype(np.float32)
+    layers = {"ViewLayer": compositor.layer_passes(rgba, {}, ())}
+    img = compositor.composite(scene, layers, file_outputs=False)
+    np.testing.assert_allclose(img[..., :3], rgba[..., :3], atol=1e-6)
+    assert not os.path.isdir(folder) or not os.listdir(folder)
+    compositor.composite(scene, layers)
+    assert os.listdir(folder)  # the real composite does write there
+    assert any(n.bl_idname == "CompositorNodeOutputFile" for n in tree.nodes)
+
+
+def test_the_time_limit_bounds_a_two_layer_job_and_reserves_its_outputs(tmp_path):
+    """``max_seconds`` bounds the whole job, not each view layer: the layers
+    share it (their limits sum to at most the job's), the first layer
+    reserves the outputs (EXR of both layers, the compositor, the preview:
+    ``output_seconds``, trial files removed, nothing written where the
+    user's File Output node points), and the job ends within 10 % of the limit
+    plus its longest render."""
+    from blend_util import two_layer_scene
+    from cycles_adaptive.operators.job import LayersJob, resolve_view_layers
+    scene = two_layer_scene()
+    _mix_layers(scene)
+    folder = str(tmp_path / "file_outputs")
+    tree = getattr(scene, "compositing_node_group", None) or scene.node_tree
+    rl = next(n for n in tree.nodes if n.bl_idname == "CompositorNodeRLayers")
+    _file_output_node(tree, rl.outputs["Image"], folder)
+    limit = 8.0
+    opts = Options(method="var", spp=100000, initial_spp=2, subsets=2, iterations=4, seed=1, max_seconds=limit)
+    out = str(tmp_path / "two.exr")
+    job = LayersJob(scene, resolve_view_layers(scene), opts, out, exr_depth="full")
+    for _ in job.steps():
+        pass
+    shares = [j.options.max_seconds for j in job.jobs]
+    first = job.jobs[0].run
+    figures = dict(shares=shares, reserve=first.reserve_seconds, spp=[j.run.samples_rendered / j.run.pixels
+                                                                     for j in job.jobs])
+    assert first.reserve_seconds > 0 and job.jobs[1].run.reserve_seconds == 0, figures
+    assert not os.path.isdir(folder) or not os.listdir(folder)  # the trial wrote nothing there
+    assert not [f for f in os.listdir(tmp_path) if f.startswith(".tmp-")]  # trial files removed
+    summary = job.finish()
+    assert 0 < shares[0] <= limit / 2 + 1e-9 and sum(shares) <= limit + 1e-9, shares
+    assert summary["time_limited"] is True and summary["max_seconds"] == limit
+    longest = max(j.run.max_task_seconds for j in job.jobs)
+    assert summary["total_seconds"] <= limit * 1.1 + longest, (summary, figures)
+    assert summary["compositor"] == "applied" and os.path.isfile(summary["preview"])
+    assert all(j.run.samples_rendered > 2 * j.run.pixels for j in job.jobs), figures  # both layers got time
