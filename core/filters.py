@@ -525,7 +525,9 @@ def nlm_center_weights(values, variances, cy, cx, radius: int, patch_radius: int
     Used for RHF's colour regression weights ``w(i, j) = NLM(M, k, false)``
     (Liu et al. 2018, Sec. 3.3) at sparse centres only.  The distance is the
     channel mean of Eq. 5 (Rousselle et al. 2013), clipped at ``D_CLIP`` and
-    averaged over the patch pairs that lie inside the image (Eq. 4).
+    averaged over the patch pairs that lie inside the image (Eq. 4), computed
+    once at k = 1; at strength k it is that over k^2, which is Eq. 5 with
+    eps taken as k^2 eps (``_center_patch_sums``: one patch sum for all k).
 
     Parameters
     ----------
@@ -568,14 +570,14 @@ def nlm_center_weights(values, variances, cy, cx, radius: int, patch_radius: int
     idx = np.clip(yy, 0, h - 1) * w + np.clip(xx, 0, w - 1)
     ye = _finite(np.moveaxis(yv.reshape(-1, c)[idx], -1, 0), lim, dtype=dtype)  # (C,N,E,E)
     ve = _finite_var(np.moveaxis(vv.reshape(-1, c)[idx], -1, 0), vlim, dtype=dtype)
-    k2 = (ks * ks).astype(dtype)
     epsd = dtype.type(max(float(eps), 1e-300 if dtype == np.float64 else 1e-30))
-    acc = np.zeros((K, n, s, s))
+    acc = np.zeros((n, s, s))
     cnt = np.zeros((n, s, s))
     with np.errstate(over="ignore", invalid="ignore", divide="ignore"):
-        _center_patch_sums(ye, ve, inside, acc, cnt, k2, epsd, r, pr, c)
-    pdist = np.maximum(acc / np.maximum(cnt, 1.0), 0.0)                # (K, N, s, s)
-    logw = -pdist / (2.0 * max(float(sigma_r), 1e-12) ** 2)
+        _center_patch_sums(ye, ve, inside, acc, cnt, epsd, r, pr, c)
+    pdist = np.maximum(acc / np.maximum(cnt, 1.0), 0.0)                # (N, s, s) at k = 1
+    scale = 1.0 / (2.0 * max(float(sigma_r), 1e-12) ** 2 * np.maximum(ks * ks, 1e-300))
+    logw = pdist[None] * -scale.reshape(K, 1, 1, 1)                    # (K, N, s, s): d_k = d_1 / k^2
     if sigma_s > 0:
         oy, ox = window_offsets(r)
         logw = logw - ((oy * oy + ox * ox) / (2.0 * sigma_s * sigma_s)).reshape(1, 1, s, s)
@@ -584,28 +586,27 @@ def nlm_center_weights(values, variances, cy, cx, radius: int, patch_radius: int
     return np.ascontiguousarray(np.moveaxis(wgt, 0, 1)).reshape(n, K, s * s)
 
 
-def _center_patch_sums(ye, ve, inside, acc, cnt, k2, epsd, r, pr, c):
-    """Patch sums of the clipped channel-mean Eq. 5 distance for every k,
-    added to ``acc`` (K, N, s, s) float64 and the pair counts to ``cnt``.
+def _center_patch_sums(ye, ve, inside, acc, cnt, epsd, r, pr, c):
+    """Patch sums of the clipped channel-mean Eq. 5 distance at k = 1, added
+    to ``acc`` (N, s, s) float64, and the pair counts to ``cnt``.
 
-    One pass per patch offset (ly, lx): the Eq. 5 numerators and variance
-    sums are formed for all channels at once (they do not depend on k) and
-    the distances for all K candidates and channels in one (K, C, N, s, s)
-    block, then summed over channels in channel order, scaled by 1/C,
-    clipped and added to ``acc`` -- the same float operations in the same
-    order per element as a loop over k and channels, so the same bits.
+    One pass per patch offset (ly, lx), all channels at once:
+    ``min(mean_c (|y_a - y_b|^2 - (va + min(va, vb))) / (va + vb + eps), D_CLIP)``.
+    The distance at strength k is this over k^2 (``nlm_center_weights``):
+    Eq. 5's eps then enters as k^2 eps, and the clip as D_CLIP / k^2; both
+    differ from the per-k formula only where a pair's distance is beyond
+    D_CLIP / 16 (patch weights below e^-600: zero once quantised) or where
+    the variances are ~eps (zero-variance pixels, returned unchanged by RHF).
+    One division per pixel pair and channel instead of one per k.
     ye, ve : (C, N, E, E) gathered values / variances, E = s + 2 pr.
     """
     R = r + pr
     s = 2 * r + 1
     n = ye.shape[1]
     dt = ye.dtype
-    K = k2.size
-    kc = np.asarray(k2, dt).reshape(K, 1, 1, 1, 1)
     num = np.empty((c, n, s, s), dt)
     sv = np.empty((c, n, s, s), dt)
-    q = np.empty((K, c, n, s, s), dt)
-    dsum = np.empty((K, n, s, s), dt)
+    dsum = np.empty((n, s, s), dt)
     ok = np.empty((n, s, s), bool)
     inv_c = dt.type(1.0 / c)
     for ly in range(-pr, pr + 1):
@@ -622,15 +623,14 @@ def _center_patch_sums(ye, ve, inside, acc, cnt, k2, epsd, r, pr, c):
             np.add(va, sv, out=sv)
             num -= sv                                                # |y_a - y_b|^2 - (va + min)
             np.add(va, vb, out=sv)
-            np.multiply(sv, kc, out=q)                               # k^2 (va + vb) + eps
-            q += epsd
-            np.divide(num, q, out=q)
+            sv += epsd
+            np.divide(num, sv, out=num)
             if c == 1:
-                dsum[...] = q[:, 0]
+                dsum[...] = num[0]
             else:
-                np.add(q[:, 0], q[:, 1], out=dsum)
+                np.add(num[0], num[1], out=dsum)
                 for ch in range(2, c):
-                    dsum += q[:, ch]
+                    dsum += num[ch]
             dsum *= inv_c
             np.minimum(dsum, D_CLIP, out=dsum)
             if ok.all():

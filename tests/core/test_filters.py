@@ -251,7 +251,8 @@ def test_nlm_center_weights_match_direct():
             for o in range(25):
                 qi, qj = cy[n] + oy[o], cx[n] + ox[o]
                 if 0 <= qi < 6 and 0 <= qj < 9:
-                    P = direct_patch_distance(y, v, cy[n], cx[n], qi, qj, k, 1, False)[0]
+                    # Eq. 5 with eps scaled by k^2: the k = 1 distance over k^2 (nlm_center_weights)
+                    P = direct_patch_distance(y, v, cy[n], cx[n], qi, qj, k, 1, False, eps=k * k * 1e-10)[0]
                     assert W[n, ki, o] == pytest.approx(np.exp(-P / 2), abs=1e-12)
                 else:
                     assert W[n, ki, o] == 0

@@ -1,8 +1,9 @@
 """RHF's hot paths after the speed work, against independent formulations.
 
-* ``filters._center_patch_sums`` (all channels and bandwidths in one block
-  per patch offset) against a scalar loop over centres, window pixels, patch
-  offsets, k and channels doing the same float operations: equal bits.
+* ``filters._center_patch_sums`` (all channels in one block per patch
+  offset, one sum for every k) against a scalar loop over centres, window
+  pixels, patch offsets and channels doing the same float operations: equal
+  bits (the weights at each k against Eq. 5 per k: tests/core/test_filters.py).
 * ``hat_bias_variance(lean=True)``'s bias^2 against the channel mean of the
   full bias: equal bits.
 * the banded prefilter (``nlm_filter`` and ``guided_filter_mean`` row strips,
@@ -40,14 +41,13 @@ def gathered(y, v, cy, cx, r, pr, dtype):
     return ye, ve, inside
 
 
-def direct_patch_sums(ye, ve, inside, k2, eps, r, pr):
-    """Eq. 4-5 patch sums by scalar loops (per centre, window pixel, patch
-    offset, k, channel), in the order of the vectorised code."""
+def direct_patch_sums(ye, ve, inside, eps, r, pr):
+    """Eq. 4-5 patch sums at k = 1 by scalar loops (per centre, window pixel,
+    patch offset, channel), in the order of the vectorised code."""
     c, N = ye.shape[:2]
     s = 2 * r + 1
     R = r + pr
-    K = k2.size
-    acc = np.zeros((K, N, s, s))
+    acc = np.zeros((N, s, s))
     cnt = np.zeros((N, s, s))
     t = ye.dtype.type
     inv_c = t(1.0 / c)
@@ -61,16 +61,15 @@ def direct_patch_sums(ye, ve, inside, k2, eps, r, pr):
                         if not (inside[n, ai, aj] and inside[n, bi, bj]):
                             continue
                         cnt[n, oy, ox] += 1
-                        for kk in range(K):
-                            dsum = None
-                            for ch in range(c):
-                                a, va = ye[ch, n, ai, aj], ve[ch, n, ai, aj]
-                                b, vb = ye[ch, n, bi, bj], ve[ch, n, bi, bj]
-                                nm = (a - b) * (a - b) - (va + min(va, vb))
-                                q = nm / (t(va + vb) * k2[kk] + eps)
-                                dsum = q if dsum is None else t(dsum + q)
-                            dsum = min(t(dsum * inv_c), t(D_CLIP))
-                            acc[kk, n, oy, ox] += np.float64(dsum)
+                        dsum = None
+                        for ch in range(c):
+                            a, va = ye[ch, n, ai, aj], ve[ch, n, ai, aj]
+                            b, vb = ye[ch, n, bi, bj], ve[ch, n, bi, bj]
+                            nm = (a - b) * (a - b) - (va + min(va, vb))
+                            q = nm / t(t(va + vb) + eps)
+                            dsum = q if dsum is None else t(dsum + q)
+                        dsum = min(t(dsum * inv_c), t(D_CLIP))
+                        acc[n, oy, ox] += np.float64(dsum)
     return acc, cnt
 
 
@@ -84,19 +83,18 @@ def test_center_patch_sums_equal_scalar_loop(dtype):
     cy = np.array([0, 9, 19, 4, 12])
     cx = np.array([0, 11, 23, 22, 1])                         # corners, borders, interior
     ye, ve, inside = gathered(y, v, cy, cx, r, pr, dtype)
-    k2 = (np.array([1.0, 2.0, 4.0]) ** 2).astype(dtype)
     eps = np.dtype(dtype).type(1e-10)
-    K, s = k2.size, 2 * r + 1
-    acc = np.zeros((K, cy.size, s, s))
+    s = 2 * r + 1
+    acc = np.zeros((cy.size, s, s))
     cnt = np.zeros((cy.size, s, s))
     with np.errstate(over="ignore", invalid="ignore", divide="ignore"):
-        filters._center_patch_sums(ye, ve, inside, acc, cnt, k2, eps, r, pr, 3)
-        ref_acc, ref_cnt = direct_patch_sums(ye, ve, inside, k2, eps, r, pr)
+        filters._center_patch_sums(ye, ve, inside, acc, cnt, eps, r, pr, 3)
+        ref_acc, ref_cnt = direct_patch_sums(ye, ve, inside, eps, r, pr)
     np.testing.assert_array_equal(cnt, ref_cnt)
     np.testing.assert_array_equal(acc, ref_acc)
     full = (2 * pr + 1) ** 2                                 # outside, border and full patches
     assert cnt.min() == 0 and cnt.max() == full and ((cnt > 0) & (cnt < full)).any()
-    assert np.all(acc[:, cnt == 0] == 0)
+    assert np.all(acc[cnt == 0] == 0)
 
 
 def test_lean_bias_is_channel_mean_of_full_bias():
