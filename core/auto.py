@@ -98,6 +98,12 @@ RATES = {"oidn": 0.89, "lp": 1.08, "awr": 1.09, "rhf": 1.33}
 #: error estimate), except uniform + OIDN as auto runs it (candidate_params)
 CALLS = {"oidn": 3.0}
 
+#: the same for the reconstruction an adaptive round reads (the method's
+#: ``map_result``): oidn's denoises the whole and both halves without the
+#: albedo / normal prefilter (``Params.map_prefilter`` "fast"), 3 of the 9
+#: OIDN passes of the three accurate calls, one timed call's worth
+MAP_CALLS = {"oidn": 1.0}
+
 CV_MARGIN = 4  # pixels of context around each scored tile
 NOISELESS = 1e-10  # half-budget relMSE of the sample mean below which the image counts as noise-free
 
@@ -658,7 +664,7 @@ def predict(scores: dict, ctx: Context, rel_var, params: Params, costs: dict) ->
                 gain, extra = adaptive_allocation(rel_var, ctx.initial_spp, ctx.spp, rate,
                                                   ctx.max_pixel_share, ctx.min_task_size)
                 e = e_uni / gain
-                per_iter = recon if mod.SAMPLER_USES_RESULT else 0.0
+                per_iter = (one * MAP_CALLS.get(name, CALLS.get(name, 1.0))) if mod.SAMPLER_USES_RESULT else 0.0
                 tasks = planned_tasks(extra, ctx.iterations, ctx.min_task_size, ctx.task_cost)
                 secs = t_plain + t_ps * ctx.task_cost * tasks + ctx.iterations * per_iter + recon
             speedup = (t_plain * (e_mean / max(e, 1e-300)) ** (1.0 / beta)) / max(secs, 1e-12)

@@ -55,6 +55,12 @@ class Method(Protocol):
         initial pass and never asks for a map.
     SAMPLER_USES_RESULT : bool; False: ``sample_map`` ignores ``result`` and
         the loop does not reconstruct between iterations (AWR, var).
+
+    One optional member, read with ``getattr`` (as ``methods.method_for``):
+    ``map_result(buf, params) -> MethodResult``, the reconstruction the loop
+    hands ``sample_map`` between iterations when it may be cheaper than the
+    final one (oidn: its error estimate without the albedo / normal
+    prefilter); without it the loop calls ``reconstruct``.
     """
 
     NAME: str

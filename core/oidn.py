@@ -70,6 +70,7 @@ iterations are the rounds; its final reconstruction denoises all samples.
 """
 from __future__ import annotations
 
+import dataclasses
 import threading
 import time
 from dataclasses import dataclass
@@ -122,6 +123,11 @@ class Params:
                            "image, sharper where they are noisy: defocus, motion blur); none takes "
                            "them as noise-free (cleanAux on: keeps their noise in the image)",
                            choices=PREFILTERS, label="Prefilter")
+    map_prefilter: str = param("fast", "albedo/normal prefilter of the error estimates that place "
+                               "samples between rounds (the full mean and both halves denoised): "
+                               "fast skips denoising the albedo and normal first, 3 OIDN passes per "
+                               "estimate instead of 9; the final image always uses Prefilter",
+                               choices=PREFILTERS, label="Map Prefilter")
     adaptive: bool = param(True, "place samples where the denoised image's estimated error falls "
                            "most per sample; off: uniform sampling, then OIDN (what Cycles' "
                            "Denoise checkbox does, run through this loop)", label="Adaptive")
@@ -153,7 +159,7 @@ class Params:
                          choices=BACKENDS, label="Backend")
 
     def __post_init__(self):
-        for name, choices in (("quality", QUALITIES), ("prefilter", PREFILTERS),
+        for name, choices in (("quality", QUALITIES), ("prefilter", PREFILTERS), ("map_prefilter", PREFILTERS),
                               ("allocation", ALLOCATIONS), ("backend", BACKENDS)):
             value = getattr(self, name)
             if value not in choices:
@@ -602,6 +608,19 @@ def reconstruct(buf: Buffers, params: Params | None = None) -> MethodResult:
     return _recorrupted(buf.color.mean, buf.variance_of_mean(), feats, fvar, p)
 
 
+def map_result(buf: Buffers, params: Params | None = None) -> MethodResult:
+    """The reconstruction the sampler reads between rounds (the optional
+    member of ``core.method.Method``): :func:`reconstruct` with
+    ``Params.map_prefilter`` as the prefilter.  A round's map needs only the
+    pooled relative error, on 8x8 blocks, of an image that the rounds after
+    it will change; OIDN's albedo and normal prefilter are two of the three
+    passes of each of its three denoises (docs/notes/oidn.md, map prefilter)."""
+    p = _params(params)
+    if p.map_prefilter != p.prefilter:
+        p = dataclasses.replace(p, prefilter=p.map_prefilter)
+    return reconstruct(buf, p)
+
+
 def denoise(color, color_var, features=None, feature_var=None, n=None, params=None) -> MethodResult:
     """OIDN on plain arrays (the unified entry of every method module).
 
@@ -643,14 +662,14 @@ def sample_map(buf: Buffers, result: MethodResult | None, budget: int, params=No
                state: dict | None = None) -> np.ndarray:
     """(H, W) int64 new samples summing to ``budget``: the water-filling
     top-up of the module notes on ``BLOCK`` x ``BLOCK`` blocks, from
-    ``result``'s pooled relative error (reconstructed here when None); one
+    ``result``'s pooled relative error (:func:`map_result` here when None); one
     count per block, so the planner renders the map as it is.  Uniform with
     ``adaptive`` off or when no error is known."""
     p = _params(params)
     if not p.adaptive or budget <= 0:
         return allocate(np.ones(buf.shape), budget)
     if result is None:
-        result = reconstruct(buf, p)
+        result = map_result(buf, p)
     rel = result.fit.relative if isinstance(result.fit, OIDNFit) else \
         relative_map(np.repeat(result.error[..., None], 3, axis=-1), result.image, p.pool_radius)
     if state is not None:

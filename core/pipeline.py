@@ -870,6 +870,10 @@ class AdaptiveRun:
             result = None
         elif self._result is not None and self._result[0] == self.samples_rendered:
             result = self._result[1]
+        elif getattr(self.method, "map_result", None) is not None:
+            # the method's cheaper reconstruction for maps (core/method.py):
+            # not the final one, so neither kept for the end nor its time estimate
+            result = self.method.map_result(self.view, self.params)
         else:
             t1 = time.perf_counter()
             result = self.method.reconstruct(self.view, self.params)

@@ -426,3 +426,54 @@ def test_a_main_thread_backend_marks_the_loops_work(monkeypatch):
     assert not any(p.work.main_thread for p in lp.steps() if p.work is not None)
     oidn.unregister_backend("blender")
     assert not oidn.needs_main_thread()
+
+
+def _recording_filter(monkeypatch, calls):
+    """oidn_filter replaced by a 3x3 box filter that records each call's prefilter."""
+    def fake(c, a=None, n=None, **kw):
+        calls.append(kw.get("prefilter"))
+        return box_mean(np.asarray(c, np.float64), 1)
+    monkeypatch.setattr(oidn, "oidn_filter", fake)
+
+
+def test_the_map_estimate_is_the_reconstruction_with_the_map_prefilter(monkeypatch):
+    rng = np.random.default_rng(5)
+    h, w = 12, 16
+    feats = [{"albedo": np.full((h, w, 3), 0.5), "normal": np.dstack([np.zeros((h, w))] * 2 + [np.ones((h, w))])}
+             for _ in range(4)]
+    buf = Buffers.from_subsets([0.3 + 0.2 * rng.random((h, w, 3)) for _ in range(4)], [1] * 4, feats)
+    calls = []
+    _recording_filter(monkeypatch, calls)
+    full = oidn.reconstruct(buf, oidn.Params())
+    assert calls == ["accurate"] * 3
+    calls.clear()
+    cheap = oidn.map_result(buf, oidn.Params())
+    assert calls == ["fast"] * 3                     # the full mean and both halves, no aux prefilter
+    calls.clear()
+    same = oidn.map_result(buf, oidn.Params(map_prefilter="accurate"))
+    assert calls == ["accurate"] * 3
+    for a, b in ((full, same), (full, cheap)):       # the box filter ignores the prefilter: same numbers
+        np.testing.assert_array_equal(a.image, b.image)
+        np.testing.assert_array_equal(a.error, b.error)
+    with pytest.raises(ValueError, match="map_prefilter"):
+        oidn.Params(map_prefilter="sharp")
+
+
+def test_the_loop_places_samples_by_the_map_estimate_and_ends_with_the_full_reconstruction(
+        monkeypatch, fake_executor):
+    """Between rounds the loop reads ``map_result`` (fast prefilter); the
+    final image is ``reconstruct``'s (the accurate prefilter)."""
+    h, w = 16, 16
+    truth = _truth(h, w)
+    feats = {"albedo": np.clip(truth, 0, 1), "normal": np.dstack([np.zeros((h, w))] * 2 + [np.ones((h, w))])}
+    calls = []
+    _recording_filter(monkeypatch, calls)
+    opts = Options(method="oidn", spp=8, initial_spp=4, iterations=3, seed=1, min_task_size=4, task_cost=0.0)
+    run = AdaptiveRun(fake_executor(truth, feats), opts, method=oidn)
+    for _ in run.steps():
+        pass
+    rounds = run.method_state["rounds"]
+    assert rounds >= 1 and calls == ["fast"] * (3 * rounds)
+    calls.clear()
+    run.reconstruct()
+    assert calls == ["accurate"] * 3
