@@ -449,8 +449,8 @@ def output_seconds(scene, layer_names, buf, exr, out: str, plan=None, preview: b
     gave slopes half the frame's) and extrapolated to the frame by the line
     through both (:func:`core.timeplan.extrapolate_seconds`: the
     compositor's fixed cost, a scene copy and a render call, is not scaled
-    with the rows); a frame of at most 32 rows is timed whole.  Calls bpy when ``plan`` or ``preview``
-    (main thread)."""
+    with the rows); a frame of at most 32 rows is timed whole.  Calls bpy
+    when ``plan`` or ``preview`` (main thread)."""
     from ..addon.executor import write_preview
     from ..core import timeplan
     h, w = buf.shape
@@ -972,15 +972,12 @@ class LayersJob:
         """Give layer ``i`` its share of ``Options.max_seconds``, which bounds
         the whole job: what is left (less the final reconstructions of the
         layers already sampled, which run at the end, and the outputs'
-        reserve the first layer measured and kept in its own) split evenly
-        over the layers still to render, on a clock started now."""
+        reserve the first layer measured and kept in its own: each sampled
+        layer's ``AdaptiveRun.final_reserve``) split evenly over the layers
+        still to render, on a clock started now."""
         job = self.jobs[i]
         left = self.options.max_seconds - (time.perf_counter() - self.t0)
-        for j in self.jobs[:i]:
-            if j.run is not None:
-                left -= float(j.run.reconstruct_estimate or 0.0)
-                if j is self.jobs[0]:
-                    left -= max(float(j.run.reserve_seconds), 0.0)
+        left -= sum(j.run.final_reserve() for j in self.jobs[:i] if j.run is not None)
         share = max(left / (len(self.jobs) - i), 1e-3)  # > 0: 0 would mean no limit
         job.options = dataclasses.replace(job.options, max_seconds=share)
         job.t0 = time.perf_counter()
