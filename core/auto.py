@@ -75,6 +75,7 @@ from .buffers import Buffers
 from .filters import box_mean
 from .method import MethodResult, param
 from .metrics import REL_EPS
+from .oidn import FAST_CALL_SHARE
 
 NAME = "auto"
 ADAPTIVE = True
@@ -94,15 +95,15 @@ SAMPLINGS = ("auto", "uniform", "adaptive")
 RATES = {"oidn": 0.89, "lp": 1.08, "awr": 1.09, "rhf": 1.33}
 
 #: filter calls one reconstruction makes, relative to the one call the cost
-#: model times: oidn's reconstruct denoises the whole and both halves (its
-#: error estimate), except uniform + OIDN as auto runs it (candidate_params)
-CALLS = {"oidn": 3.0}
+#: model times (OIDN with the accurate prefilter): oidn's reconstruct makes
+#: that call for its image and estimates the error from three calls with the
+#: fast prefilter (the whole and both halves, ``Params.map_prefilter``),
+#: except uniform + OIDN as auto runs it (candidate_params)
+CALLS = {"oidn": 1.0 + 3.0 * FAST_CALL_SHARE}
 
 #: the same for the reconstruction an adaptive round reads (the method's
-#: ``map_result``): oidn's denoises the whole and both halves without the
-#: albedo / normal prefilter (``Params.map_prefilter`` "fast"), 3 of the 9
-#: OIDN passes of the three accurate calls, one timed call's worth
-MAP_CALLS = {"oidn": 1.0}
+#: ``map_result``): the three fast calls of the error estimate only
+MAP_CALLS = {"oidn": 3.0 * FAST_CALL_SHARE}
 
 CV_MARGIN = 4  # pixels of context around each scored tile
 NOISELESS = 1e-10  # half-budget relMSE of the sample mean below which the image counts as noise-free

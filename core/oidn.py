@@ -98,6 +98,12 @@ ALLOCATIONS = ("proportional", "topup")
 #: spp and 0.84 from 8 to 64; per scene 0.3 (glossy) to 1.2 (docs/notes/oidn.md)
 RATE = 0.9
 
+#: seconds of one call with the fast prefilter over one with the accurate
+#: prefilter (OIDN high quality, CPU): 0.09 at 512x512 (docs/notes/oidn.md,
+#: cost per megapixel), 0.10-0.16 at 128x128 and 640x400; the cost model of
+#: ``auto`` charges the error estimate's calls with it
+FAST_CALL_SHARE = 0.15
+
 #: largest colour value handed to OIDN (float32 input; HDR values beyond are
 #: clipped, non-finite ones set to 0)
 VALUE_LIMIT = 1e7
@@ -123,10 +129,11 @@ class Params:
                            "image, sharper where they are noisy: defocus, motion blur); none takes "
                            "them as noise-free (cleanAux on: keeps their noise in the image)",
                            choices=PREFILTERS, label="Prefilter")
-    map_prefilter: str = param("fast", "albedo/normal prefilter of the error estimates that place "
-                               "samples between rounds (the full mean and both halves denoised): "
-                               "fast skips denoising the albedo and normal first, 3 OIDN passes per "
-                               "estimate instead of 9; the final image always uses Prefilter",
+    map_prefilter: str = param("fast", "albedo/normal prefilter of the error estimates (the full "
+                               "mean and both halves denoised) that place samples between rounds "
+                               "and give the final Error pass: fast skips denoising the albedo and "
+                               "normal first, 3 OIDN passes per estimate instead of 9; the image "
+                               "itself always uses Prefilter",
                                choices=PREFILTERS, label="Map Prefilter")
     adaptive: bool = param(True, "place samples where the denoised image's estimated error falls "
                            "most per sample; off: uniform sampling, then OIDN (what Cycles' "
@@ -542,6 +549,17 @@ def estimate(color, features, halves, n_a, n_b, params: Params | None = None,
     (so ``core.metrics.relative_error_map(image, error)`` is ``e`` exactly),
     ``fit`` an :class:`OIDNFit` with ``e`` for the sampler.
 
+    The image uses ``Params.prefilter``; the error is estimated with
+    ``Params.map_prefilter``: where the two differ, from a second denoise of
+    the full mean and the halves, all three with ``map_prefilter``, so that
+    the bias term compares like with like (a fast-prefilter half against an
+    accurate-prefilter whole would count the prefilter's own effect as
+    bias).  Choice: the error of the fast-prefilter image stands in for the
+    accurate image's (the accurate one is at most as noisy where the
+    auxiliary passes are, so the estimate errs high): 1 accurate call + 3
+    fast ones cost ~1.45 accurate calls instead of 3 (:data:`FAST_CALL_SHARE`;
+    docs/notes/oidn.md, "the final error estimate").
+
     color : (H, W, 3) full mean; features : name -> (H, W, C) full means
     halves : ((color_A, features_A), (color_B, features_B)) or None (error
         0).  Each half is denoised with its own guides (albedo, normal): with
@@ -549,8 +567,8 @@ def estimate(color, features, halves, n_a, n_b, params: Params | None = None,
         agree far more than independent halves do (the estimate fell to 1/10
         of the true error on soft_shadows at 4 spp; docs/notes/oidn.md).
     n_a, n_b : (H, W) samples in each half (scalars broadcast)
-    denoiser : ``f(color, albedo, normal) -> (H, W, 3)``; default OIDN with
-        ``params`` (tests pass a linear filter to check the constant)
+    denoiser : ``f(color, albedo, normal, prefilter) -> (H, W, 3)``; default
+        OIDN with ``params`` (tests pass a linear filter to check the constant)
     var_of_mean : (H, W, 3) variance of the full mean calibrated for the
         sequence's stratification (``Buffers.calibrated_variance``): the
         variance constant is scaled by :func:`stratification_scale`; None:
@@ -559,30 +577,34 @@ def estimate(color, features, halves, n_a, n_b, params: Params | None = None,
     p = _params(params)
     t0 = time.perf_counter()
     if denoiser is None:
-        def denoiser(c, a, n):
-            return oidn_filter(c, a, n, quality=p.quality, prefilter=p.prefilter, backend=p.backend)
-    d = np.asarray(denoiser(color, *_aux(features)), np.float64)
+        def denoiser(c, a, n, prefilter):
+            return oidn_filter(c, a, n, quality=p.quality, prefilter=prefilter, backend=p.backend)
+    d = np.asarray(denoiser(color, *_aux(features), p.prefilter), np.float64)
     calls = 1
     if halves is None:
         zero = np.zeros_like(d)
         var = bias = zero
+        d_err = d
         kind = "none"
     else:
+        pre = p.map_prefilter
+        d_err = d if pre == p.prefilter else np.asarray(denoiser(color, *_aux(features), pre), np.float64)
         (ca, fa), (cb, fb) = halves
-        d_a = np.asarray(denoiser(ca, *_aux(fa)), np.float64)
-        d_b = np.asarray(denoiser(cb, *_aux(fb)), np.float64)
-        calls = 3
+        d_a = np.asarray(denoiser(ca, *_aux(fa), pre), np.float64)
+        d_b = np.asarray(denoiser(cb, *_aux(fb), pre), np.float64)
+        calls = 3 if d_err is d else 4
         shape = d.shape[:2]
         na, nb = np.broadcast_to(n_a, shape), np.broadcast_to(n_b, shape)
-        scale = 1.0 if var_of_mean is None else stratification_scale(var_of_mean, ca, cb, na, nb, d)
-        var, bias = dual_buffer_error(d, d_a, d_b, na, nb, p.bias_weight, p.pool_radius, scale)
+        scale = 1.0 if var_of_mean is None else stratification_scale(var_of_mean, ca, cb, na, nb, d_err)
+        var, bias = dual_buffer_error(d_err, d_a, d_b, na, nb, p.bias_weight, p.pool_radius, scale)
         kind = "split"
     err3 = var + bias
-    rel = relative_map(err3, d)
+    rel = relative_map(err3, d_err)
     seconds = time.perf_counter() - t0
     info = {"oidn_calls": calls, "oidn_seconds": seconds, "estimated_relmse": float(rel.mean())}
     if halves is not None:
         info["variance_scale"] = scale
+        info["error_prefilter"] = p.map_prefilter
     weight = (1.0 / (d * d + REL_EPS)).mean(axis=-1)  # > 0: d finite, REL_EPS > 0
     return MethodResult(d, rel / weight, info, None, OIDNFit(rel, var, bias, kind))
 
@@ -611,10 +633,11 @@ def reconstruct(buf: Buffers, params: Params | None = None) -> MethodResult:
 def map_result(buf: Buffers, params: Params | None = None) -> MethodResult:
     """The reconstruction the sampler reads between rounds (the optional
     member of ``core.method.Method``): :func:`reconstruct` with
-    ``Params.map_prefilter`` as the prefilter.  A round's map needs only the
-    pooled relative error, on 8x8 blocks, of an image that the rounds after
-    it will change; OIDN's albedo and normal prefilter are two of the three
-    passes of each of its three denoises (docs/notes/oidn.md, map prefilter)."""
+    ``Params.map_prefilter`` as the prefilter: the same error estimate as
+    :func:`reconstruct`'s, without its image's albedo and normal prefilter
+    passes.  A round's map needs only the pooled relative error, on 8x8
+    blocks, of an image that the rounds after it will change
+    (docs/notes/oidn.md, map prefilter)."""
     p = _params(params)
     if p.map_prefilter != p.prefilter:
         p = dataclasses.replace(p, prefilter=p.map_prefilter)

@@ -230,7 +230,7 @@ def test_register_unregister_register_again(addon):
     assert "cycles_adaptive" in sys.modules
 
 
-def test_the_last_result_names_autos_choice():
+def test_the_last_result_names_autos_choice(addon):
     from cycles_adaptive.addon.panel import summary_lines
     from cycles_adaptive.operators.render_op import store_summary
     s = build_scene(8, 8).cycles_adaptive

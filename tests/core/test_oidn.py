@@ -394,7 +394,7 @@ def test_without_its_error_estimate_oidn_makes_one_call_and_bounds_the_error(mon
     calls = []
     monkeypatch.setattr(oidn, "oidn_filter", lambda c, a=None, n=None, **kw: calls.append(1) or np.asarray(c))
     full = oidn.reconstruct(buf, oidn.Params(adaptive=False))
-    assert len(calls) == 3
+    assert len(calls) == 4  # the image, then the whole and both halves for the error (fast prefilter)
     calls.clear()
     one = oidn.reconstruct(buf, oidn.Params(adaptive=False, error_estimate=False))
     assert len(calls) == 1
@@ -445,14 +445,17 @@ def test_the_map_estimate_is_the_reconstruction_with_the_map_prefilter(monkeypat
     calls = []
     _recording_filter(monkeypatch, calls)
     full = oidn.reconstruct(buf, oidn.Params())
-    assert calls == ["accurate"] * 3
+    assert calls == ["accurate"] + ["fast"] * 3     # the image; its error from the fast estimate
     calls.clear()
     cheap = oidn.map_result(buf, oidn.Params())
     assert calls == ["fast"] * 3                     # the full mean and both halves, no aux prefilter
     calls.clear()
+    alike = oidn.reconstruct(buf, oidn.Params(map_prefilter="accurate"))
+    assert calls == ["accurate"] * 3                 # one prefilter: the image is the estimate's whole
+    calls.clear()
     same = oidn.map_result(buf, oidn.Params(map_prefilter="accurate"))
     assert calls == ["accurate"] * 3
-    for a, b in ((full, same), (full, cheap)):       # the box filter ignores the prefilter: same numbers
+    for a, b in ((full, same), (full, cheap), (full, alike)):  # the box filter ignores the prefilter
         np.testing.assert_array_equal(a.image, b.image)
         np.testing.assert_array_equal(a.error, b.error)
     with pytest.raises(ValueError, match="map_prefilter"):
@@ -462,7 +465,8 @@ def test_the_map_estimate_is_the_reconstruction_with_the_map_prefilter(monkeypat
 def test_the_loop_places_samples_by_the_map_estimate_and_ends_with_the_full_reconstruction(
         monkeypatch, fake_executor):
     """Between rounds the loop reads ``map_result`` (fast prefilter); the
-    final image is ``reconstruct``'s (the accurate prefilter)."""
+    final image is ``reconstruct``'s (the accurate prefilter; its error from
+    the fast estimate)."""
     h, w = 16, 16
     truth = _truth(h, w)
     feats = {"albedo": np.clip(truth, 0, 1), "normal": np.dstack([np.zeros((h, w))] * 2 + [np.ones((h, w))])}
@@ -476,4 +480,4 @@ def test_the_loop_places_samples_by_the_map_estimate_and_ends_with_the_full_reco
     assert rounds >= 1 and calls == ["fast"] * (3 * rounds)
     calls.clear()
     run.reconstruct()
-    assert calls == ["accurate"] * 3
+    assert calls == ["accurate"] + ["fast"] * 3      # the image, then its error estimate

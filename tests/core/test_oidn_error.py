@@ -113,10 +113,33 @@ def test_the_error_is_the_relative_map_in_absolute_units():
     a = mu + 0.1 * rng.standard_normal(mu.shape)
     b = mu + 0.1 * rng.standard_normal(mu.shape)
     res = oidn.estimate((a + b) / 2, {}, ((a, {}), (b, {})), 2.0, 2.0, oidn.Params(),
-                        denoiser=lambda c, al, nr: box_mean(c, 1))
+                        denoiser=lambda c, al, nr, pre: box_mean(c, 1))
     np.testing.assert_allclose(metrics.relative_error_map(res.image, res.error), res.fit.relative,
                                rtol=1e-10, atol=1e-15)
     assert metrics.estimated_relmse(res.image, res.error) == pytest.approx(res.fit.relative.mean())
+
+
+def test_the_error_compares_denoises_of_one_prefilter():
+    """With the image's prefilter (accurate) unlike the estimate's (fast), the
+    error comes from three denoises with the fast one: halves equal to the
+    whole give no error, though the accurate image differs from the fast
+    one (a bias term mixing the two would count that difference)."""
+    mu = _truth(24, 24)
+    seen = []
+
+    def denoiser(c, al, nr, pre):
+        seen.append(pre)
+        return box_mean(c, 1) if pre == "accurate" else box_mean(c, 3)
+
+    res = oidn.estimate(mu, {}, ((mu, {}), (mu, {})), 2.0, 2.0, oidn.Params(), denoiser=denoiser)
+    assert seen == ["accurate", "fast", "fast", "fast"]
+    np.testing.assert_array_equal(res.image, box_mean(mu, 1))
+    assert np.abs(box_mean(mu, 3) - res.image).max() > 1e-3
+    assert not res.error.any() and res.info["oidn_calls"] == 4
+    seen.clear()
+    same = oidn.estimate(mu, {}, ((mu, {}), (box_mean(mu, 2), {})), 2.0, 2.0,
+                         oidn.Params(map_prefilter="accurate"), denoiser=denoiser)
+    assert seen == ["accurate"] * 3 and same.info["oidn_calls"] == 3 and same.error.max() > 0
 
 
 def test_reconstruct_measures_the_scale_from_the_buffers(monkeypatch):
