@@ -16,6 +16,8 @@ again.  Subcommands (from the repository root):
     .venv/bin/python tools/oidn_study.py calib --seeds 0 --spp 4,8,16 --reps 8
         # the estimate's terms against Var[D] and MSE over disjoint realisations
     .venv/bin/python tools/oidn_study.py peer --seeds 0,1 --spp 8,16   # pyoidn vs Cycles' OIDN, same render
+    .venv/bin/python tools/oidn_study.py prefix --seeds 0,1 --spp 8,16 --holds 32,64,128
+        # samples [0, L) of a count-held Blue Noise table against plain L-spp renders
 
 ``--data`` (default out/oidn_study) holds the renders and results; ``--refs``
 (default /work/refs) the 1024-spp references (bench/references.py names).
@@ -449,10 +451,70 @@ def exp_peer(args):
             json.dump(rows, f, indent=1)
 
 
+def exp_prefix(args):
+    """Is a prefix of a count-held Blue Noise sequence as good as the plain
+    render of its length?  An adaptive run ends with unequal counts, so it
+    cannot hold ``samples`` at every pixel's final count; it could hold it at
+    one upper bound H (every pixel's samples [0, n_i) of the H-spp table).
+    Per scene, seed and length L: plain renders of L spp with the scene's
+    pattern and with Tabulated Sobol, and samples [0, L) of the scene's
+    pattern held at each H of ``--holds``; relMSE before and after OIDN
+    (pyoidn on the render's Noisy Image, Denoising Albedo and Normal, accurate
+    prefilter), each render in a freshly opened file."""
+    import tempfile
+    import bpy
+    from cycles_adaptive.addon.executor import quiet_stdout
+    from cycles_adaptive.core import io as imageio
+    tmp = tempfile.mkdtemp()
+    rows = []
+    for scene in args.scenes:
+        truth = best_ref(scene)
+        for seed in args.seeds:
+            for spp in args.spp:
+                L = int(spp)
+                cases = [("TABULATED_SOBOL", 0), ("AUTOMATIC", 0)] + [("AUTOMATIC", h) for h in args.holds if h > L]
+                for pattern, hold in cases:
+                    bpy.ops.wm.open_mainfile(filepath=os.path.join(ROOT, "sample_blends", f"{scene}.blend"))
+                    s = bpy.context.scene
+                    s.frame_set(1)
+                    c = s.cycles
+                    c.seed, c.use_animated_seed = seed, False
+                    c.sampling_pattern = pattern
+                    c.use_adaptive_sampling = False
+                    c.use_denoising = False
+                    s.render.use_persistent_data = False
+                    if hold:
+                        c.samples, c.sample_offset = hold, 0
+                        c.use_sample_subset, c.sample_subset_length = True, L
+                    else:
+                        c.samples = L
+                    s.render.use_compositing = False
+                    bpy.context.view_layer.cycles.denoising_store_passes = True
+                    if hasattr(s.render.image_settings, "media_type"):
+                        s.render.image_settings.media_type = "MULTI_LAYER_IMAGE"
+                    s.render.image_settings.file_format = "OPEN_EXR_MULTILAYER"
+                    s.render.image_settings.color_depth = "32"
+                    s.render.filepath = os.path.join(tmp, "r.exr")
+                    with quiet_stdout():
+                        bpy.ops.render.render(write_still=True)
+                    p = imageio.read_layers(s.render.filepath)[0]
+                    noisy = p["Combined"][..., :3].astype(np.float64)
+                    den_ = oidn.oidn_filter(noisy, p["Denoising Albedo"][..., :3], p["Denoising Normal"][..., :3],
+                                            prefilter="accurate", quality="high", backend="pyoidn")
+                    r = {"scene": scene, "seed": seed, "spp": L, "pattern": pattern, "hold": hold,
+                         "noisy": relmse(noisy, truth), "oidn": relmse(den_, truth)}
+                    rows.append(r)
+                    print(f"{scene:>12} seed {seed} {L:3d} spp {pattern:>15} hold {hold:4d}: "
+                          f"noisy {r['noisy']:.4e} oidn {r['oidn']:.4e}", flush=True)
+    if args.out:
+        with open(args.out, "w") as f:
+            json.dump(rows, f, indent=1)
+
+
 def main():
     global ARGS
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("exp", choices=("render", "rate", "estimate", "loop", "mc", "cost", "calib", "peer"))
+    ap.add_argument("exp", choices=("render", "rate", "estimate", "loop", "mc", "cost", "calib", "peer", "prefix"))
     ap.add_argument("--data", default=os.path.join(ROOT, "out", "oidn_study"))
     ap.add_argument("--refs", default="/work/refs")
     ap.add_argument("--samples", type=int, default=128)
@@ -469,10 +531,12 @@ def main():
     ap.add_argument("--reps-cost", type=int, default=3)
     ap.add_argument("--size", type=int, default=512)
     ap.add_argument("--patterns", default="AUTOMATIC,TABULATED_SOBOL")
+    ap.add_argument("--holds", type=lambda s: [int(x) for x in s.split(",")], default=[32, 64, 128])
     ARGS = args = ap.parse_args()
     TASK_COST[0] = args.task_cost
     {"render": exp_render, "rate": exp_rate, "estimate": exp_estimate, "loop": exp_loop, "mc": exp_mc,
-     "cost": exp_cost, "calib": exp_calib, "peer": exp_peer}[args.exp](args)
+     "cost": exp_cost, "calib": exp_calib, "peer": exp_peer,
+     "prefix": exp_prefix}[args.exp](args)
 
 
 if __name__ == "__main__":
