@@ -35,7 +35,8 @@ LOOP_SPEED = ((0.5, 0.97), (0.0, 0.9))
 
 #: key -> (comparison, bound, what it judges): the goals of the benchmark
 GOALS = {
-    "error_correlation": (">=", 0.8, "estimated / true error correlation per pixel"),
+    "error_correlation_block": (">=", 0.8, "estimated / true error correlation on 8x8 blocks (the "
+                                "planner's scale)"),
     "guard_fraction": ("<", 0.05, "share of pixels the consistency guard replaced"),
     "negative_share": ("==", 0.0, "share of pixels with negative output where the reference is >= 0"),
     "brightness_percent": ("abs<=", 0.5, "mean brightness vs the sample mean's, %"),
@@ -46,12 +47,14 @@ GOALS = {
     "uniform_over_oracle": (">=", 1.3, "relMSE(uniform-method) / relMSE(oracle-method)"),
 }
 #: the goals judged on each run of our loop (columns of "Estimates and artefacts")
-RUN_GOALS = ("error_correlation", "guard_fraction", "negative_share", "brightness_percent",
+RUN_GOALS = ("error_correlation_block", "guard_fraction", "negative_share", "brightness_percent",
              "beyond_map_percent")
 
 #: the targets' wording of the per-run goals (a goal without one is worded from GOALS)
 TARGET_TEXT = {
-    "error_correlation": "error-map correlation >= 0.8 for every method",
+    "error_correlation_block": "error-map correlation >= 0.8 for every method, on 8x8 blocks (the planner's "
+                               "scale; per pixel even the exact expected error reaches only 0.37-0.66 "
+                               "against one render's, docs/notes/error-maps.md)",
     "negative_share": "no negative output where the reference is >= 0",
     "brightness_percent": "mean brightness within 0.5 % of the sample mean",
     "guard_fraction": "the consistency guard touches < 5 % of pixels",

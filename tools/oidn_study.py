@@ -18,6 +18,8 @@ again.  Subcommands (from the repository root):
     .venv/bin/python tools/oidn_study.py peer --seeds 0,1 --spp 8,16   # pyoidn vs Cycles' OIDN, same render
     .venv/bin/python tools/oidn_study.py prefix --seeds 0,1 --spp 8,16 --holds 32,64,128
         # samples [0, L) of a count-held Blue Noise table against plain L-spp renders
+    .venv/bin/python tools/oidn_study.py ceiling --reps 16 --spp 8,16
+        # the best correlation any error map can have with one render's true error
 
 ``--data`` (default out/oidn_study) holds the renders and results; ``--refs``
 (default /work/refs) the 1024-spp references (bench/references.py names).
@@ -451,6 +453,46 @@ def exp_peer(args):
             json.dump(rows, f, indent=1)
 
 
+_TMP: dict = {}
+
+
+def plain_render(scene, seed, spp, pattern="TABULATED_SOBOL", hold=0, tmp=None):
+    """One plain render of a sample scene in a freshly opened file: ``spp``
+    samples (with ``hold``: samples [0, spp) of ``pattern`` held at ``hold``)
+    with the denoising passes stored.  Returns (colour, albedo, normal)."""
+    import tempfile
+    import bpy
+    from cycles_adaptive.addon.executor import quiet_stdout
+    from cycles_adaptive.core import io as imageio
+    if tmp is None:
+        tmp = _TMP.setdefault("dir", tempfile.mkdtemp())
+    bpy.ops.wm.open_mainfile(filepath=os.path.join(ROOT, "sample_blends", f"{scene}.blend"))
+    s = bpy.context.scene
+    s.frame_set(1)
+    c = s.cycles
+    c.seed, c.use_animated_seed = seed, False
+    c.sampling_pattern = pattern
+    c.use_adaptive_sampling = False
+    c.use_denoising = False
+    s.render.use_persistent_data = False
+    if hold:
+        c.samples, c.sample_offset = hold, 0
+        c.use_sample_subset, c.sample_subset_length = True, int(spp)
+    else:
+        c.samples = int(spp)
+    s.render.use_compositing = False
+    bpy.context.view_layer.cycles.denoising_store_passes = True
+    if hasattr(s.render.image_settings, "media_type"):
+        s.render.image_settings.media_type = "MULTI_LAYER_IMAGE"
+    s.render.image_settings.file_format = "OPEN_EXR_MULTILAYER"
+    s.render.image_settings.color_depth = "32"
+    s.render.filepath = os.path.join(tmp, "r.exr")
+    with quiet_stdout():
+        bpy.ops.render.render(write_still=True)
+    p = imageio.read_layers(s.render.filepath)[0]
+    return tuple(p[k][..., :3].astype(np.float64) for k in ("Combined", "Denoising Albedo", "Denoising Normal"))
+
+
 def exp_prefix(args):
     """Is a prefix of a count-held Blue Noise sequence as good as the plain
     render of its length?  An adaptive run ends with unequal counts, so it
@@ -461,11 +503,6 @@ def exp_prefix(args):
     pattern held at each H of ``--holds``; relMSE before and after OIDN
     (pyoidn on the render's Noisy Image, Denoising Albedo and Normal, accurate
     prefilter), each render in a freshly opened file."""
-    import tempfile
-    import bpy
-    from cycles_adaptive.addon.executor import quiet_stdout
-    from cycles_adaptive.core import io as imageio
-    tmp = tempfile.mkdtemp()
     rows = []
     for scene in args.scenes:
         truth = best_ref(scene)
@@ -474,33 +511,8 @@ def exp_prefix(args):
                 L = int(spp)
                 cases = [("TABULATED_SOBOL", 0), ("AUTOMATIC", 0)] + [("AUTOMATIC", h) for h in args.holds if h > L]
                 for pattern, hold in cases:
-                    bpy.ops.wm.open_mainfile(filepath=os.path.join(ROOT, "sample_blends", f"{scene}.blend"))
-                    s = bpy.context.scene
-                    s.frame_set(1)
-                    c = s.cycles
-                    c.seed, c.use_animated_seed = seed, False
-                    c.sampling_pattern = pattern
-                    c.use_adaptive_sampling = False
-                    c.use_denoising = False
-                    s.render.use_persistent_data = False
-                    if hold:
-                        c.samples, c.sample_offset = hold, 0
-                        c.use_sample_subset, c.sample_subset_length = True, L
-                    else:
-                        c.samples = L
-                    s.render.use_compositing = False
-                    bpy.context.view_layer.cycles.denoising_store_passes = True
-                    if hasattr(s.render.image_settings, "media_type"):
-                        s.render.image_settings.media_type = "MULTI_LAYER_IMAGE"
-                    s.render.image_settings.file_format = "OPEN_EXR_MULTILAYER"
-                    s.render.image_settings.color_depth = "32"
-                    s.render.filepath = os.path.join(tmp, "r.exr")
-                    with quiet_stdout():
-                        bpy.ops.render.render(write_still=True)
-                    p = imageio.read_layers(s.render.filepath)[0]
-                    noisy = p["Combined"][..., :3].astype(np.float64)
-                    den_ = oidn.oidn_filter(noisy, p["Denoising Albedo"][..., :3], p["Denoising Normal"][..., :3],
-                                            prefilter="accurate", quality="high", backend="pyoidn")
+                    noisy, alb, nrm = plain_render(scene, seed, L, pattern, hold)
+                    den_ = oidn.oidn_filter(noisy, alb, nrm, prefilter="accurate", quality="high", backend="pyoidn")
                     r = {"scene": scene, "seed": seed, "spp": L, "pattern": pattern, "hold": hold,
                          "noisy": relmse(noisy, truth), "oidn": relmse(den_, truth)}
                     rows.append(r)
@@ -511,10 +523,69 @@ def exp_prefix(args):
             json.dump(rows, f, indent=1)
 
 
+def _pearson(a, b) -> float:
+    a, b = np.ravel(a) - np.mean(a), np.ravel(b) - np.mean(b)
+    den = np.sqrt((a * a).sum() * (b * b).sum())
+    return float((a * b).sum() / den) if den > 0 else 0.0
+
+
+def _blocks8(x):
+    h, w = (x.shape[0] // 8) * 8, (x.shape[1] // 8) * 8
+    return x[:h, :w].reshape(h // 8, 8, w // 8, 8).mean(axis=(1, 3))
+
+
+def _pair_correlation(e) -> float:
+    """Mean Pearson correlation between the error maps of two different
+    renders, ``(K, ...)`` stacked."""
+    flat = e.reshape(len(e), -1)
+    c = np.corrcoef(flat)
+    return float(c[~np.eye(len(e), dtype=bool)].mean())
+
+
+def exp_ceiling(args):
+    """How well can any error map correlate with the true error of one
+    render?  The benchmark's figure is the Pearson correlation of the
+    estimated squared error with the true one, ``mean_c (x - r)^2``, of a
+    single render: one noisy realisation of the pixel's expected squared
+    error ``E``.  Even ``E`` itself correlates with it below 1: for two
+    independent renders j, k, ``cov(e_j, e_k) = Var(E)``, so
+    ``corr(E, e_k) = sqrt(corr(e_j, e_k))``, the square root of the mean
+    pairwise correlation of ``--reps`` renders' error maps (seeds 0..reps-1,
+    Tabulated Sobol, and their OIDN with the accurate prefilter).  That is the
+    ceiling any estimate reaches, per pixel and on 8x8 blocks (the
+    benchmark's '8x8' column, the planner's scale), in the benchmark's
+    absolute form and in the metric's relative one ``(x - r)^2 / (r^2 +
+    0.01)`` (in the absolute form a single bright pixel can rule it)."""
+    rows = []
+    for scene in args.scenes:
+        truth = best_ref(scene)
+        for spp in args.spp:
+            errs = {(m, f): [] for m in ("mean", "oidn") for f in ("absolute", "relative")}
+            for seed in range(args.reps):
+                x, alb, nrm = plain_render(scene, seed, int(spp))
+                d = oidn.oidn_filter(x, alb, nrm, prefilter="accurate", quality="high", backend="pyoidn")
+                for name, img in (("mean", x), ("oidn", d)):
+                    errs[name, "absolute"].append(((img - truth) ** 2).mean(axis=-1))
+                    errs[name, "relative"].append(per_pixel_relmse(img, truth))
+            for (name, form), e in errs.items():
+                e = np.stack(e)
+                pix = _pair_correlation(e)
+                blk = _pair_correlation(np.stack([_blocks8(x) for x in e]))
+                r = {"scene": scene, "spp": spp, "method": name, "form": form, "reps": len(e),
+                     "pair_pixel": pix, "pair_8x8": blk,
+                     "ceiling_pixel": float(np.sqrt(max(pix, 0.0))), "ceiling_8x8": float(np.sqrt(max(blk, 0.0)))}
+                rows.append(r)
+                print(f"{scene:>12} {spp:4.0f} spp {name:>5} {form:>8}: ceiling per pixel {r['ceiling_pixel']:.3f} "
+                      f"8x8 {r['ceiling_8x8']:.3f} ({len(e)} renders)", flush=True)
+    if args.out:
+        with open(args.out, "w") as f:
+            json.dump(rows, f, indent=1)
+
+
 def main():
     global ARGS
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("exp", choices=("render", "rate", "estimate", "loop", "mc", "cost", "calib", "peer", "prefix"))
+    ap.add_argument("exp", choices=("render", "rate", "estimate", "loop", "mc", "cost", "calib", "peer", "prefix", "ceiling"))
     ap.add_argument("--data", default=os.path.join(ROOT, "out", "oidn_study"))
     ap.add_argument("--refs", default="/work/refs")
     ap.add_argument("--samples", type=int, default=128)
@@ -536,7 +607,7 @@ def main():
     TASK_COST[0] = args.task_cost
     {"render": exp_render, "rate": exp_rate, "estimate": exp_estimate, "loop": exp_loop, "mc": exp_mc,
      "cost": exp_cost, "calib": exp_calib, "peer": exp_peer,
-     "prefix": exp_prefix}[args.exp](args)
+     "prefix": exp_prefix, "ceiling": exp_ceiling}[args.exp](args)
 
 
 if __name__ == "__main__":
