@@ -58,7 +58,14 @@ the benchmark's measure (the time plain Cycles needs for the candidate's
 error over the candidate's time).  The sample mean (S = 1) is a candidate, so a
 choice never predicts worse than plain Cycles.  Batches of tiles are scored
 (the first always) until the choice has spent ``Params.cv_share`` of the
-predicted render time.
+predicted render time; within the first batch the candidates are scored in
+the order ``Params.candidates`` lists them (OIDN first by default, the
+strongest on the sample scenes) and those the budget leaves are not
+candidates (reported as ``unscored``).  Choice: a frame that renders in a
+fraction of a second cannot repay scoring every reconstruction (the first
+batch of all five took 0.65-0.77 s at 128x128 against renders of 0.25-0.5 s;
+docs/notes/auto.md), so its choice is between the sample mean and the first
+denoiser listed.
 """
 from __future__ import annotations
 
@@ -119,7 +126,9 @@ class Params:
     sampling: str = param("auto", "sampling to choose from: auto predicts whether adaptive sampling "
                           "pays; uniform or adaptive fixes it", choices=SAMPLINGS, label="Sampling")
     cv_share: float = param(0.1, "most time the choice may spend, as a share of the predicted "
-                            "render time (one tile is always scored); more: a steadier choice",
+                            "render time: candidates are scored in the order listed until it is "
+                            "spent (one batch of tiles and the first candidate always); more: "
+                            "more candidates and a steadier choice on fast renders",
                             0.0, 10.0, label="Choice Time Share")
     tile: int = param(16, "side of the square tiles the candidates are scored on, pixels", 8, 512,
                       label="Tile Size")
@@ -433,7 +442,8 @@ def mosaic(crops: list, subset_data: list, height: int, width: int):
     return [(colors[s], feats[s], counts[s]) for s in range(n_sub)], mask
 
 
-def score_tile(subsets, crop, height, width, names, exponent: float = 1.0, mask=None):
+def score_tile(subsets, crop, height, width, names, exponent: float = 1.0, mask=None,
+               deadline: float | None = None):
     """Per-pixel estimates of each reconstruction's relMSE at half the
     initial samples on one crop's interior (module notes), with the
     reconstruction's seconds and model dimension.
@@ -452,7 +462,9 @@ def score_tile(subsets, crop, height, width, names, exponent: float = 1.0, mask=
     added ``c - v/2`` (``c`` the covariance of R*(A) with A): 1.3-1.9x over
     the true half-budget error on the sample scenes (docs/notes/auto.md).
     ``mask`` (a :func:`mosaic`'s): score these pixels of the subsets' image
-    instead of the crop's interior."""
+    instead of the crop's interior.  ``deadline`` (a ``time.perf_counter``
+    value): once it has passed, the candidates after the first reconstruction
+    scored are left out of the returned dict (the choice's time budget)."""
     features = [k for k in subsets[0][1]]
     buf_a, buf_b = _halves(subsets, features)
     for b in (buf_a, buf_b):
@@ -466,6 +478,8 @@ def score_tile(subsets, crop, height, width, names, exponent: float = 1.0, mask=
         if name == "mean":
             continue
         t0 = time.perf_counter()
+        if images and deadline is not None and t0 >= deadline:
+            break
         ra, rb = _reconstruct(name, buf_a), _reconstruct(name, buf_b)
         seconds = time.perf_counter() - t0
         ia, ib = _image(ra)[idx], _image(rb)[idx]
@@ -702,12 +716,19 @@ def select(crops: list, subset_data: list, ctx: Context, rel_var, params: Params
     t_plain = render_seconds(ctx)[1]
     tiles, scored = [], 0
     step = max(1, int(p.batch))
+    listed = names
     for i in range(0, len(crops), step):
         subs, mask = mosaic(crops[i:i + step], subset_data[i:i + step], height, width)
-        tiles.append(score_tile(subs, None, height, width, names, ctx.exponent, mask=mask))
+        # the first batch scores the candidates in their listed order until the
+        # budget is spent (the first reconstruction always); later batches the same ones
+        deadline = t0 + p.cv_share * t_plain if i == 0 else None
+        tiles.append(score_tile(subs, None, height, width, names, ctx.exponent, mask=mask,
+                                deadline=deadline))
+        names = [n for n in names if n in tiles[0]]
         scored += len(crops[i:i + step])
         if time.perf_counter() - t0 >= p.cv_share * t_plain:
             break
+    unscored = [n for n in listed if n not in names]
     scores = combine_scores(tiles)
     # the sample mean needs no reconstruction: scored on every stored crop
     mean_all = np.concatenate([mean_terms(subs, crop, height, width, ctx.exponent).ravel()
@@ -725,8 +746,12 @@ def select(crops: list, subset_data: list, ctx: Context, rel_var, params: Params
     if runner is not None:
         why += f"; next {runner['name']} {runner['speedup']:.2f}x"
     why += f"; {scored} tile(s) cross-validated in {time.perf_counter() - t0:.2f} s"
+    if unscored:
+        why += (f"; not scored within the choice's time ({p.cv_share:g} of the predicted "
+                f"{t_plain:.2f} s render): {', '.join(unscored)}")
     return Selection(chosen, {"chosen": chosen.NAME, "params": params, "candidates": rows, "why": why,
-                              "tiles": scored, "seconds": time.perf_counter() - t0, **extra}, params)
+                              "tiles": scored, "seconds": time.perf_counter() - t0,
+                              "unscored": unscored, **extra}, params)
 
 
 # ---------------------------------------------------- Method members

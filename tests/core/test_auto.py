@@ -207,6 +207,24 @@ def test_cv_regions_lie_inside_the_frame_and_one_crop_covers_a_small_frame():
     assert ys[-1] - ys[0] >= 64  # the first tiles spread over the frame
 
 
+def test_the_choice_scores_candidates_in_order_within_its_time(monkeypatch):
+    """With no time to spend (cv_share 0) only the first listed
+    reconstruction is scored besides the sample mean, and the report names
+    the others; with time for all (a render predicted to take an hour) every
+    one is scored."""
+    truth, feats = _scene(24, 24)
+    quick = _run(FakeExecutor(truth, feats), spp=6, params={"candidates": "mean,awr,lp", "cv_share": 0.0})
+    names = {r["name"] for r in quick.selection["candidates"]}
+    assert names == {"uniform", "var", "uniform-awr", "awr"}
+    assert quick.selection["unscored"] == ["lp"] and "not scored" in quick.selection["why"]
+    assert quick.selection["chosen"] in names
+    real = auto.render_seconds
+    monkeypatch.setattr(auto, "render_seconds", lambda ctx: (real(ctx)[0], 3600.0))
+    slow = _run(FakeExecutor(truth, feats), spp=6, params={"candidates": "mean,awr,lp"})
+    assert {r["name"] for r in slow.selection["candidates"]} == names | {"uniform-lp", "lp"}
+    assert slow.selection["unscored"] == [] and "not scored" not in slow.selection["why"]
+
+
 def test_too_few_subsets_fall_back_and_say_why():
     truth, feats = _scene(16, 16)
     run = _run(FakeExecutor(truth, feats), spp=6, initial_spp=2, subsets=2,
