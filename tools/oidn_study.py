@@ -406,8 +406,6 @@ def exp_peer(args):
     in the gap between the ``oidn`` method and the cycles_oidn peer."""
     import tempfile
     import bpy
-    from cycles_adaptive.addon.executor import quiet_stdout
-    from cycles_adaptive.core import io as imageio
     tmp = tempfile.mkdtemp()
     rows = []
     for scene in args.scenes:
@@ -427,16 +425,7 @@ def exp_peer(args):
                     if hasattr(c, "denoising_quality"):
                         c.denoising_quality = "HIGH"
                     c.denoising_use_gpu = False
-                    s.render.use_compositing = False
-                    bpy.context.view_layer.cycles.denoising_store_passes = True
-                    if hasattr(s.render.image_settings, "media_type"):
-                        s.render.image_settings.media_type = "MULTI_LAYER_IMAGE"
-                    s.render.image_settings.file_format = "OPEN_EXR_MULTILAYER"
-                    s.render.image_settings.color_depth = "32"
-                    s.render.filepath = os.path.join(tmp, "r.exr")
-                    with quiet_stdout():
-                        bpy.ops.render.render(write_still=True)
-                    p = imageio.read_layers(s.render.filepath)[0]
+                    p = render_layers(s, tmp)
                     noisy = p["Noisy Image"][..., :3].astype(np.float64)
                     theirs = p["Combined"][..., :3].astype(np.float64)
                     ours = oidn.oidn_filter(noisy, p["Denoising Albedo"][..., :3], p["Denoising Normal"][..., :3],
@@ -456,14 +445,31 @@ def exp_peer(args):
 _TMP: dict = {}
 
 
+def render_layers(s, tmp):
+    """Render scene ``s`` with its denoising passes stored into a 32-bit
+    multilayer EXR under ``tmp``; the first view layer's passes (name ->
+    array)."""
+    import bpy
+    from cycles_adaptive.addon.executor import quiet_stdout
+    from cycles_adaptive.core import io as imageio
+    s.render.use_compositing = False
+    bpy.context.view_layer.cycles.denoising_store_passes = True
+    if hasattr(s.render.image_settings, "media_type"):
+        s.render.image_settings.media_type = "MULTI_LAYER_IMAGE"
+    s.render.image_settings.file_format = "OPEN_EXR_MULTILAYER"
+    s.render.image_settings.color_depth = "32"
+    s.render.filepath = os.path.join(tmp, "r.exr")
+    with quiet_stdout():
+        bpy.ops.render.render(write_still=True)
+    return imageio.read_layers(s.render.filepath)[0]
+
+
 def plain_render(scene, seed, spp, pattern="TABULATED_SOBOL", hold=0, tmp=None):
     """One plain render of a sample scene in a freshly opened file: ``spp``
     samples (with ``hold``: samples [0, spp) of ``pattern`` held at ``hold``)
     with the denoising passes stored.  Returns (colour, albedo, normal)."""
     import tempfile
     import bpy
-    from cycles_adaptive.addon.executor import quiet_stdout
-    from cycles_adaptive.core import io as imageio
     if tmp is None:
         tmp = _TMP.setdefault("dir", tempfile.mkdtemp())
     bpy.ops.wm.open_mainfile(filepath=os.path.join(ROOT, "sample_blends", f"{scene}.blend"))
@@ -480,16 +486,7 @@ def plain_render(scene, seed, spp, pattern="TABULATED_SOBOL", hold=0, tmp=None):
         c.use_sample_subset, c.sample_subset_length = True, int(spp)
     else:
         c.samples = int(spp)
-    s.render.use_compositing = False
-    bpy.context.view_layer.cycles.denoising_store_passes = True
-    if hasattr(s.render.image_settings, "media_type"):
-        s.render.image_settings.media_type = "MULTI_LAYER_IMAGE"
-    s.render.image_settings.file_format = "OPEN_EXR_MULTILAYER"
-    s.render.image_settings.color_depth = "32"
-    s.render.filepath = os.path.join(tmp, "r.exr")
-    with quiet_stdout():
-        bpy.ops.render.render(write_still=True)
-    p = imageio.read_layers(s.render.filepath)[0]
+    p = render_layers(s, tmp)
     return tuple(p[k][..., :3].astype(np.float64) for k in ("Combined", "Denoising Albedo", "Denoising Normal"))
 
 
