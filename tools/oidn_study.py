@@ -437,12 +437,17 @@ def exp_peer(args):
                     print(f"{scene:>12} seed {seed} {pattern:>15} {spp:4.0f} spp: noisy {r['noisy']:.3e} | "
                           f"Cycles' OIDN {r['cycles_oidn']:.3e} | pyoidn on its inputs {r['pyoidn']:.3e} "
                           f"({r['pyoidn'] / r['cycles_oidn']:.3f}x) | the two apart {r['apart']:.2e}", flush=True)
-    if args.out:
-        with open(args.out, "w") as f:
-            json.dump(rows, f, indent=1)
+    save_rows(rows, args.out)
 
 
 _TMP: dict = {}
+
+
+def save_rows(rows, out: str) -> None:
+    """The experiment's rows as JSON to ``out`` (nothing when empty)."""
+    if out:
+        with open(out, "w") as f:
+            json.dump(rows, f, indent=1)
 
 
 def render_layers(s, tmp):
@@ -515,9 +520,7 @@ def exp_prefix(args):
                     rows.append(r)
                     print(f"{scene:>12} seed {seed} {L:3d} spp {pattern:>15} hold {hold:4d}: "
                           f"noisy {r['noisy']:.4e} oidn {r['oidn']:.4e}", flush=True)
-    if args.out:
-        with open(args.out, "w") as f:
-            json.dump(rows, f, indent=1)
+    save_rows(rows, args.out)
 
 
 def _pearson(a, b) -> float:
@@ -574,9 +577,7 @@ def exp_ceiling(args):
                 rows.append(r)
                 print(f"{scene:>12} {spp:4.0f} spp {name:>5} {form:>8}: ceiling per pixel {r['ceiling_pixel']:.3f} "
                       f"8x8 {r['ceiling_8x8']:.3f} ({len(e)} renders)", flush=True)
-    if args.out:
-        with open(args.out, "w") as f:
-            json.dump(rows, f, indent=1)
+    save_rows(rows, args.out)
 
 
 def main():
