@@ -383,14 +383,19 @@ def test_adaptive_run_spends_the_budget_and_the_uniform_variant_samples_evenly(f
     assert (uni.buffers.n == 8).all() and uni.reconstruct().fit.halves == "split"
 
 
-def test_without_its_error_estimate_oidn_makes_one_call_and_bounds_the_error(monkeypatch):
-    from core import oidn
+def _flat_aux_buffers(seed, h, w, lo, span):
+    """Four one-sample subsets of colour ``lo + span * U(0, 1)`` with a flat
+    albedo (0.5) and normal (+z)."""
     from core.buffers import Buffers
-    rng = np.random.default_rng(3)
-    h, w = 10, 12
+    rng = np.random.default_rng(seed)
     feats = [{"albedo": np.full((h, w, 3), 0.5), "normal": np.dstack([np.zeros((h, w))] * 2 + [np.ones((h, w))])}
              for _ in range(4)]
-    buf = Buffers.from_subsets([0.4 + 0.1 * rng.random((h, w, 3)) for _ in range(4)], [1] * 4, feats)
+    return Buffers.from_subsets([lo + span * rng.random((h, w, 3)) for _ in range(4)], [1] * 4, feats)
+
+
+def test_without_its_error_estimate_oidn_makes_one_call_and_bounds_the_error(monkeypatch):
+    from core import oidn
+    buf = _flat_aux_buffers(3, 10, 12, 0.4, 0.1)
     calls = []
     monkeypatch.setattr(oidn, "oidn_filter", lambda c, a=None, n=None, **kw: calls.append(1) or np.asarray(c))
     full = oidn.reconstruct(buf, oidn.Params(adaptive=False))
@@ -437,11 +442,7 @@ def _recording_filter(monkeypatch, calls):
 
 
 def test_the_map_estimate_is_the_reconstruction_with_the_map_prefilter(monkeypatch):
-    rng = np.random.default_rng(5)
-    h, w = 12, 16
-    feats = [{"albedo": np.full((h, w, 3), 0.5), "normal": np.dstack([np.zeros((h, w))] * 2 + [np.ones((h, w))])}
-             for _ in range(4)]
-    buf = Buffers.from_subsets([0.3 + 0.2 * rng.random((h, w, 3)) for _ in range(4)], [1] * 4, feats)
+    buf = _flat_aux_buffers(5, 12, 16, 0.3, 0.2)
     calls = []
     _recording_filter(monkeypatch, calls)
     full = oidn.reconstruct(buf, oidn.Params())
