@@ -117,8 +117,9 @@ FEATURE_ORDER = (("normal", 3), ("albedo", 3), ("depth", 1))
 #: Most window pixels (centres x (2r+1)^2) regressed together: the per-chunk
 #: temporaries (design rows, weights, the per-k products of
 #: ``hat_bias_variance``) take ~0.5 kB per window pixel, so this bounds them
-#: to ~4 MB whatever the window radius.
-CHUNK_PIXELS = 1 << 13
+#: to ~8 MB whatever the window radius (2x the former 1 << 13: fewer, larger
+#: batched products, same peak memory at 512x512; docs/notes/rhf.md, "Chunk sizes").
+CHUNK_PIXELS = 1 << 14
 #: frames below this many pixels run their model chunks on the calling thread
 #: only (measured: docs/notes/rhf.md, "Threads")
 THREAD_MIN_PIXELS = 1 << 16
@@ -211,9 +212,10 @@ class Params:
                                      "colour in the Eq. 13 average (not in the paper): pixels that the models weight weakly (their "
                                      "predictions there are extrapolations) lean on their unbiased "
                                      "input; 0 = pure Eq. 13, higher = closer to the input", 0.0, 1.0, label="Input Weight")
-    chunk_centers: int = param(32, "model centres processed together (at most CHUNK_PIXELS window "
-                                  "pixels per chunk); larger = faster, more memory; results do "
-                                  "not depend on it",
+    chunk_centers: int = param(128, "model centres processed together (at most CHUNK_PIXELS window "
+                                  "pixels per chunk); larger = fewer, larger batched products "
+                                  "(faster up to ~128), more memory, fewer pieces for threads; "
+                                  "results equal up to float rounding",
                               1, 4096, label="Batch Size")
 
 
