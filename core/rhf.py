@@ -117,8 +117,8 @@ FEATURE_ORDER = (("normal", 3), ("albedo", 3), ("depth", 1))
 #: Most window pixels (centres x (2r+1)^2) regressed together: the per-chunk
 #: temporaries (design rows, weights, the per-k products of
 #: ``hat_bias_variance``) take ~0.5 kB per window pixel, so this bounds them
-#: to ~8 MB whatever the window radius (2x the former 1 << 13: fewer, larger
-#: batched products, same peak memory at 512x512; docs/notes/rhf.md, "Chunk sizes").
+#: to ~8 MB whatever the window radius; smaller chunks spend their time in
+#: per-call costs of small batched products (docs/notes/rhf.md, "Chunk sizes").
 CHUNK_PIXELS = 1 << 14
 #: frames below this many pixels run their model chunks on the calling thread
 #: only (measured: docs/notes/rhf.md, "Threads")
