@@ -62,9 +62,8 @@ predicted render time; within the first batch the candidates are scored in
 the order ``Params.candidates`` lists them (OIDN first by default, the
 strongest on the sample scenes) and those the budget leaves are not
 candidates (reported as ``unscored``).  Choice: a frame that renders in a
-fraction of a second cannot repay scoring every reconstruction (the first
-batch of all five took 0.65-0.77 s at 128x128 against renders of 0.25-0.5 s;
-docs/notes/auto.md), so its choice is between the sample mean and the first
+fraction of a second cannot repay scoring every reconstruction
+(docs/notes/auto.md), so its choice is between the sample mean and the first
 denoiser listed.
 """
 from __future__ import annotations

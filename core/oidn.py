@@ -557,10 +557,9 @@ def estimate(color, features, halves, n_a, n_b, params: Params | None = None,
     bias).  Choice: the error of the fast-prefilter image stands in for the
     accurate image's (the accurate prefilter removes the auxiliary passes'
     noise first, so its image is expected to be no noisier: the estimate
-    should err high, not low; the bench's error correlations moved by -0.07
-    to +0.03): 1 accurate call + 3 fast ones cost ~1.45 accurate calls
-    instead of 3 (:data:`FAST_CALL_SHARE`; docs/notes/oidn.md, "the final
-    error estimate").
+    should err high, not low): 1 accurate call + 3 fast ones cost ~1.45
+    accurate calls instead of 3 (:data:`FAST_CALL_SHARE`; measured in
+    docs/notes/oidn.md, "the final error estimate").
 
     color : (H, W, 3) full mean; features : name -> (H, W, C) full means
     halves : ((color_A, features_A), (color_B, features_B)) or None (error
