@@ -137,6 +137,7 @@ import numpy as np
 
 from . import parallel
 from .buffers import Buffers
+from .errormap import retained_noise
 from .lp_solve import Design, ring_fits, ring_layout
 from .method import MethodResult, allocate, gain_exponent, param, params_from_dict
 
@@ -186,6 +187,10 @@ class Params:
         0, "centre pixels processed per vectorised batch (0 = auto: pixels / 1024, "
         "between 32 and 256, so the workspace stays under ~80 bytes per pixel); "
         "larger has less Python overhead but uses ~80 KB more memory per centre", 0, 65536, label="Batch Size")
+    kept_noise: bool = param(
+        True, "add to the error map the noise the fit keeps from noisy features (defocus, motion), "
+        "which Eq. 4-7 cannot see (core/errormap.py); off = the paper's estimate alone. The image "
+        "and the sampling do not change", 0, 1, label="Kept Noise in Error")
 
 
 @dataclass
@@ -1382,16 +1387,21 @@ def reconstruct(buf: Buffers, params: Params | None = None) -> MethodResult:
     MethodResult
         ``image`` (H, W, 3), ``error`` (H, W) = estimated squared error
         ``xi_c(k_opt)`` (Eq. 4) of the covering models averaged over RGB,
-        ``fit`` the :class:`LPFit` (reused by :func:`sample_map`),
+        plus the kept noise (``Params.kept_noise``), ``fit`` the :class:`LPFit` (reused by :func:`sample_map`),
         ``dimension`` the mean TSVD rank of the centres (0 with none), and
         ``info`` with the scalars ``center_fraction`` (paper: 4.7-18.9 %),
         ``centers``, ``passes``, ``mean_radius``, ``mean_rank``.
     """
     params = params if isinstance(params, Params) else params_from_dict(Params, params)
-    return _result(_fit_buffers(buf, params))
+    res = _fit_buffers(buf, params)
+    kept = retained_noise(res.image, buf.color.mean, buf.calibrated_variance()) if params.kept_noise else None
+    return _result(res, kept)
 
 
-def _result(res: LPFit) -> MethodResult:
+def _result(res: LPFit, kept: np.ndarray | None = None) -> MethodResult:
+    """The MethodResult of a fit; ``kept`` (H, W), the kept noise
+    (:func:`core.errormap.retained_noise`), is added to the error map only
+    (``res.error`` and the sampler's ``delta_error`` stay Eq. 4-7's)."""
     mean_rank = float(res.center_rank.mean()) if len(res.centers) else 0.0
     info = {
         "center_fraction": res.center_fraction,
@@ -1400,7 +1410,8 @@ def _result(res: LPFit) -> MethodResult:
         "mean_radius": float(res.center_radius.mean()) if len(res.centers) else 0.0,
         "mean_rank": mean_rank,
     }
-    return MethodResult(res.image, res.error, info, dimension=mean_rank, fit=res)
+    error = res.error if kept is None else res.error + kept
+    return MethodResult(res.image, error, info, dimension=mean_rank, fit=res)
 
 
 def sample_map(buf: Buffers, result: MethodResult, budget: int, params: Params | None = None,
@@ -1442,4 +1453,5 @@ def denoise(color: np.ndarray, color_var: np.ndarray, features: dict | None = No
     pixel or None (one); params : Params or dict.
     """
     params = params if isinstance(params, Params) else params_from_dict(Params, params)
-    return _result(fit(color, color_var, features, feature_var, n, params))
+    res = fit(color, color_var, features, feature_var, n, params)
+    return _result(res, retained_noise(res.image, color, color_var) if params.kept_noise else None)

@@ -94,6 +94,7 @@ import numpy as np
 
 from . import parallel
 from .buffers import Buffers
+from .errormap import retained_noise
 from .filters import (VALUE_LIMIT, VAR_LIMIT, box_mean, box_sum, guided_filter, guided_filter_mean,
                       nlm_center_weights, nlm_filter, sobel_gradient, window_offsets)
 from .method import (MethodResult, allocate, param, params_from_dict, relative_error,
@@ -217,6 +218,10 @@ class Params:
                                   "(faster up to ~128), more memory, fewer pieces for threads; "
                                   "results equal up to float rounding",
                               1, 4096, label="Batch Size")
+    kept_noise: bool = param(True, "add to the error map the noise the models keep from noisy "
+                                   "features (defocus, motion), which Eq. 11-12 cannot see "
+                                   "(core/errormap.py); off = the Eq. 12 estimate alone. The image "
+                                   "and the sampling do not change", 0, 1, label="Kept Noise in Error")
 
 
 def parse_bandwidths(text) -> np.ndarray:
@@ -1602,11 +1607,14 @@ def _feature_arrays(buf: Buffers):
     return feats, fvars
 
 
-def _result(res: RHFOutput) -> MethodResult:
+def _result(res: RHFOutput, kept: np.ndarray | None = None) -> MethodResult:
     """MethodResult of a reconstruction; ``dimension`` is the active feature
-    count (the model dimension d of ``sample_map``)."""
-    return MethodResult(res.image, res.error, res.info,
-                        dimension=float(res.info["active_features"]))
+    count (the model dimension d of ``sample_map``).  ``kept`` (H, W), the
+    kept noise (:func:`core.errormap.retained_noise`), is added to the error
+    map only; ``fit`` holds the Eq. 12 error (H, W), which the sampler reads."""
+    error = res.error if kept is None else res.error + kept
+    return MethodResult(res.image, error, res.info,
+                        dimension=float(res.info["active_features"]), fit=res.error)
 
 
 def reconstruct(buf: Buffers, params: Params | None = None) -> MethodResult:
@@ -1615,8 +1623,9 @@ def reconstruct(buf: Buffers, params: Params | None = None) -> MethodResult:
     Reads the colour mean and variance of the mean, the ``PASSES`` features
     and their variances, and n.  See ``rhf_reconstruct``; the error is the
     Eq. 12 estimate (bias^2 + variance) at each pixel's chosen k, averaged over
-    the overlapping models with the Eq. 13 weights; ``dimension`` is the
-    number of active regression features.
+    the overlapping models with the Eq. 13 weights, plus the kept noise
+    (``Params.kept_noise``); ``dimension`` is the number of active regression
+    features.
     """
     params = params or Params()
     feats, fvars = _feature_arrays(buf)
@@ -1626,7 +1635,8 @@ def reconstruct(buf: Buffers, params: Params | None = None) -> MethodResult:
     # handed over as a callable (list.pop) so that rhf_reconstruct holds the
     # only reference and frees it once the variance is prepared
     res = rhf_reconstruct(buf.color.mean, cvar.pop, feats, fvars, buf.n, params, zero_var=zero)
-    return _result(res)
+    kept = retained_noise(res.image, buf.color.mean, buf.calibrated_variance()) if params.kept_noise else None
+    return _result(res, kept)
 
 
 def sample_map(buf: Buffers, result: MethodResult, budget: int, params: Params | None,
@@ -1635,7 +1645,8 @@ def sample_map(buf: Buffers, result: MethodResult, budget: int, params: Params |
 
     The paper stops at reconstruction; sampling follows LP (Moon et al. 2015,
     Sec. 5.2): the expected error reduction of one more sample at pixel i is
-    ``err_i * n_i^(-4/(d+4))`` (``core.method.sampling_gain``) with d =
+    ``err_i * n_i^(-4/(d+4))`` (``core.method.sampling_gain``), err the Eq. 12
+    error (``result.fit``; the error map, kept noise included, otherwise), d =
     ``result.dimension``, the number of active regression features
     (``DEFAULT_DIMENSION`` = D = 9 when None), made relative by
     ``/(lum(image_i)^2 + 0.001)``; samples are allocated in proportion
@@ -1643,7 +1654,9 @@ def sample_map(buf: Buffers, result: MethodResult, budget: int, params: Params |
     n = 1.  ``state`` is unused (kept for the interface).
     """
     d = DEFAULT_DIMENSION if result.dimension is None else float(result.dimension)
-    gain = sampling_gain(result.error, buf.n, d)
+    err = result.fit if isinstance(result.fit, np.ndarray) and result.fit.shape == result.error.shape \
+        else result.error
+    gain = sampling_gain(err, buf.n, d)
     rho = relative_error(gain, result.image, 1e-3)
     return allocate(rho, int(budget))
 
@@ -1663,4 +1676,8 @@ def denoise(color, color_var, features=None, feature_var=None, n=None,
         params = params_from_dict(Params, params)
     if n is not None and np.ndim(n) == 0:
         n = np.full(np.shape(color)[:2], float(n))
-    return _result(rhf_reconstruct(color, color_var, features, feature_var, n, params))
+    res = rhf_reconstruct(color, color_var, features, feature_var, n, params)
+    kept = None
+    if (params or Params()).kept_noise:
+        kept = retained_noise(res.image, color, color_var)
+    return _result(res, kept)
