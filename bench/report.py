@@ -418,15 +418,17 @@ def estimates_section(d) -> list:
         return []
     more = [k for k in RUN_GOALS if k not in ESTIMATE_COLUMNS]  # goals added later: one column each
     L = ["", "Estimates and artefacts (each goal: the figure and met / missed; see the protocol):", "",
-         "| run | budget | error corr. per pixel | error corr. 8x8 (>= 0.8) | guard % (< 5) | negative % (= 0) "
+         "| run | budget | error corr. per pixel | error corr. 8x8 (>= 0.8) | estimated / true relMSE "
+         "| guard % (< 5) | negative % (= 0) "
          "| most negative | brightness % (within 0.5) | beyond map % (< 10) | map CV | uniform share % |"
          + "".join(f" {k} ({GOALS[k][0]} {GOALS[k][1]}) |" for k in more),
-         "|---|---|---|---|---|---|---|---|---|---|---|" + "---|" * len(more)]
+         "|---|---|---|---|---|---|---|---|---|---|---|---|" + "---|" * len(more)]
     for r in rows:
         g = r["goals"]
         tail = "".join(f" {goal_cell(g.get(k))} |" for k in more)
         L.append(f"| {r['name']} | {r['budget']} | {_fmt(r.get('error_correlation'), '.3f')} | "
                  f"{goal_cell(g.get('error_correlation_block'), '.3f')} | "
+                 f"{_fmt(r.get('error_calibration'), '.2f')} | "
                  f"{goal_cell(g.get('guard_fraction'), '.2f', 100.0)} | "
                  f"{goal_cell(g.get('negative_share'), '.2f', 100.0)} | {_fmt(r.get('negative_min'), '.3g')} | "
                  f"{goal_cell(g.get('brightness_percent'), '+.2f')} | "

@@ -186,7 +186,9 @@ def run_figures(image, error, guard_fraction, n, sample_mean, ref, overshoot: in
                 samples_rendered: int) -> dict:
     """The estimate and artefact figures of one run of our loop (see
     :data:`GOALS`): error correlations (per pixel and pooled to
-    :data:`BLOCK`), guard share, negative output, brightness shift, samples
+    :data:`BLOCK`), the error map's calibration (the firefly-robust estimated
+    relMSE that ``--target-error`` stops on, over the true relMSE; 1 =
+    calibrated; not a goal), guard share, negative output, brightness shift, samples
     beyond the map, map adaptivity."""
     from ..core import metrics
     img = np.where(np.isfinite(image), image, 0.0)
@@ -196,9 +198,12 @@ def run_figures(image, error, guard_fraction, n, sample_mean, ref, overshoot: in
     with np.errstate(over="ignore", invalid="ignore"):  # huge values: their error is left out
         corr = metrics.error_correlation(err, img, ref)
         block = pooled_error_correlation(err, img, ref)
+        true = metrics.relmse(img, ref)
+        calib = metrics.robust_relmse(img, err) / true if true > 0 else None
     return {
         "error_correlation": _finite_or_none(corr),
         "error_correlation_block": _finite_or_none(block),
+        "error_calibration": _finite_or_none(calib),
         "guard_fraction": _finite_or_none(guard_fraction),
         "negative_share": neg_share, "negative_min": neg_min,
         "brightness_percent": brightness_percent(image, sample_mean),

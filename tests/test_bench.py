@@ -423,6 +423,24 @@ def test_run_figures_are_finite_for_hostile_input():
     assert f["negative_min"] == -1e300
     f = targets.run_figures(img, err, 0.02, np.zeros((8, 8)), ref, ref, 0, 0)
     assert f["beyond_map_percent"] is None and f["map_cv"] is None and f["guard_fraction"] == 0.02
+    assert f["error_calibration"] is not None and np.isfinite(f["error_calibration"])
+    # an exact image: no true error, no calibration
+    assert targets.run_figures(ref, err, None, np.ones((8, 8)), ref, ref, 0, 1)["error_calibration"] is None
+
+
+def test_error_calibration_is_estimated_over_true_relmse():
+    """An error map equal to the realised squared error of a smooth offset is
+    calibrated (1); twice it reads 2 (robust_relmse is the plain mean here)."""
+    from cycles_adaptive.bench import targets
+    ref = np.full((16, 16, 3), 0.5)
+    img = ref + 0.01 * np.linspace(1.0, 2.0, 256).reshape(16, 16, 1)
+    true_sq = ((img - ref) ** 2).mean(-1)
+    # the estimate divides by the image, the truth by the reference: compare with the same denominator
+    err = true_sq * (img[..., 0] ** 2 + 0.01) / (ref[..., 0] ** 2 + 0.01)
+    f = targets.run_figures(img, err, None, np.ones((16, 16)), ref, ref, 0, 1)
+    assert f["error_calibration"] == pytest.approx(1.0, rel=1e-9)
+    f2 = targets.run_figures(img, 2 * err, None, np.ones((16, 16)), ref, ref, 0, 1)
+    assert f2["error_calibration"] == pytest.approx(2.0, rel=1e-9)
 
 
 def test_a_goal_added_later_gets_its_verdict_target_and_column(monkeypatch):
