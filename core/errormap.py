@@ -5,8 +5,8 @@ their error from their regression models, with the features taken as exact.
 Features rendered with the same few samples as the colour (defocus, motion
 blur, soft shadows) carry noise correlated with the colour's: a model fitted
 on them follows part of the colour noise, its held-out residuals stay small,
-and the estimate misses that part (measured: 0.05-0.2 of the true error on
-the defocus and soft-shadow scenes, docs/notes/error-maps.md).
+and the estimate misses that part (it saw a tenth to a third of the true error
+on the defocus and soft-shadow scenes, docs/notes/error-maps.md).
 
 :func:`retained_noise` estimates it from what the reconstruction left behind.
 For a linear smoother ``f = H y`` of ``y = t + n`` (independent noise of
