@@ -175,7 +175,8 @@ class Session:
                           "expected error correlates only 0.37-0.66 on the firefly-free sample "
                           "scenes (docs/notes/error-maps.md)",
             "artefacts": "guard = share of pixels the consistency guard (guard_z) replaced by "
-                         "their sample mean; negative = share of pixels with a channel < 0 where "
+                         "their sample mean, off it by more than float32 rounding (the share set "
+                         "back for rounding alone is the JSON's guard_rounding); negative = share of pixels with a channel < 0 where "
                          "the reference's is >= 0, and the most negative such value; brightness = "
                          "100 (mean luminance of the result / mean luminance of the sample mean "
                          "- 1), %",
@@ -391,6 +392,7 @@ class Session:
         rec.update(run_figures(result.image, result.error, result.info.get("guard_fraction"),
                                run.buffers.n, run.buffers.color.mean, ref, run.overshoot,
                                run.samples_rendered))
+        rec["guard_rounding"] = finite(result.info.get("guard_rounding"))
         rec.update(self.extra_run_figures(run, result, ref))
         if kind == "method":
             rec["memory"] = self.reconstruct_memory(run.method, run.buffers, run.params)

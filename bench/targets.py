@@ -37,7 +37,7 @@ LOOP_SPEED = ((0.5, 0.97), (0.0, 0.9))
 GOALS = {
     "error_correlation_block": (">=", 0.8, "estimated / true error correlation on 8x8 blocks (the "
                                 "planner's scale)"),
-    "guard_fraction": ("<", 0.05, "share of pixels the consistency guard replaced"),
+    "guard_fraction": ("<", 0.05, "share of pixels the consistency guard corrected (beyond float32 rounding)"),
     "negative_share": ("==", 0.0, "share of pixels with negative output where the reference is >= 0"),
     "brightness_percent": ("abs<=", 0.5, "mean brightness vs the sample mean's, %"),
     "beyond_map_percent": ("<", 10.0, "samples rendered beyond the method's map, % of those rendered"),

@@ -302,6 +302,10 @@ def _padded_rows(y0: int, y1: int, h: int, base: int = 0) -> np.ndarray:
     return np.clip(np.arange(y0 - 1, y1 + 1), 0, h - 1) - base
 
 
+#: relative difference below which the guard's correction is float rounding:
+#: float32's machine epsilon (the finest an output file stores)
+FLOAT32_EPS = float(np.finfo(np.float32).eps)
+
 #: pixels below which the guard and the median run inline (threads do not pay;
 #: measured: docs/notes/farm.md)
 INLINE_PIXELS = 65536
@@ -406,7 +410,13 @@ def consistency_guard(result: MethodResult, buf, z: float = 3.0, rows: int | Non
     side for the median): the same bits for any thread count.
 
     Returns a new MethodResult; ``info['guard_fraction']`` is the share of
-    pixels replaced.
+    pixels corrected: replaced, and off their mean by more than float32
+    rounding in some channel (``|x - mean| > FLOAT32_EPS max(|x|, |mean|)``).
+    ``info['guard_rounding']`` is the share replaced for a smaller difference
+    only: a regression's float64 rounding at a zero-variance pixel (LP on a
+    flat background: 1e-17), which no output file (at most float32) can hold
+    and which is no contradiction; they are set back to the exact mean all
+    the same.
     """
     if z is None or z <= 0:
         return result
@@ -417,9 +427,10 @@ def consistency_guard(result: MethodResult, buf, z: float = 3.0, rows: int | Non
     if not np.any((image != mean) & np.isfinite(mean)):
         # the reconstruction is the sample mean wherever the guard judges (uniform,
         # var): no pixel can contradict its samples
-        return replace(result, info=dict(result.info, guard_fraction=0.0))
+        return replace(result, info=dict(result.info, guard_fraction=0.0, guard_rounding=0.0))
     _t_table(float(z))  # fill the cache once, before the bands read it
     bad = np.zeros((h, w), bool)
+    real = np.zeros((h, w), bool)
     rows = _band_rows(rows, w)
 
     def judge(b):
@@ -440,10 +451,15 @@ def consistency_guard(result: MethodResult, buf, z: float = 3.0, rows: int | Non
             off = np.greater(d, np.multiply(thr, sd, out=sd), out=_tmp("g_off", shp, bool))
         off &= known
         np.logical_and(off.any(axis=-1), known.all(axis=-1), out=bad[y0:y1])
+        # corrected beyond float32 rounding (d is still |x - mean|)
+        with np.errstate(invalid="ignore"):
+            scale = np.maximum(np.abs(image[y0:y1]), np.abs(mean[y0:y1]), out=_tmp("g_scale", shp))
+            off &= np.greater(d, np.multiply(scale, FLOAT32_EPS, out=scale), out=_tmp("g_real", shp, bool))
+        np.logical_and(off.any(axis=-1), bad[y0:y1], out=real[y0:y1])
 
     _bands(judge, h, w, rows)
     if not bad.any():
-        info = dict(result.info, guard_fraction=0.0)
+        info = dict(result.info, guard_fraction=0.0, guard_rounding=0.0)
         return replace(result, info=info)
     out_image = np.empty(mean.shape, np.result_type(mean, image))
     out_err = np.empty((h, w), np.result_type(np.float64, error))
@@ -467,5 +483,6 @@ def consistency_guard(result: MethodResult, buf, z: float = 3.0, rows: int | Non
             oe[ys, xs] = np.where(known, var, 0.0).mean(axis=-1)
 
     _bands(fix, h, w, rows)
-    info = dict(result.info, guard_fraction=float(bad.mean()))
+    info = dict(result.info, guard_fraction=float(real.mean()),
+                guard_rounding=float(bad.mean() - real.mean()))
     return replace(result, image=out_image, error=out_err, info=info)

@@ -95,6 +95,7 @@ def test_quick_results_json_has_the_figures(quick):
                 assert r[k] is not None and np.isfinite(r[k]), (r["name"], k, r[k])
             assert -1.0 <= r["error_correlation"] <= 1.0 and -1.0 <= r["error_correlation_block"] <= 1.0
             assert 0.0 <= r["guard_fraction"] <= 1.0 and 0.0 <= r["negative_share"] <= 1.0
+            assert 0.0 <= r["guard_rounding"] <= 1.0 - r["guard_fraction"]
             assert (r["negative_min"] < 0) == (r["negative_share"] > 0)
             assert 0.0 <= r["map_uniform_share"] <= 1.0 and r["map_cv"] >= 0.0
             assert 0.0 <= r["beyond_map_percent"] <= 100.0

@@ -273,6 +273,6 @@ def test_consistency_guard_is_bit_identical_for_any_thread_count():
             parallel.set_threads(t)
             g = consistency_guard(res, b, 3.0, rows=rows)
             assert _same(g.image, ref_img) and _same(g.error, ref_err), (t, rows)
-            assert g.info == {"a": 1, "guard_fraction": frac}
+            assert g.info == {"a": 1, "guard_fraction": frac, "guard_rounding": 0.0}
             same = consistency_guard(MethodResult(b.color.mean, np.zeros(b.shape)), b, 3.0, rows=rows)
             assert same.info["guard_fraction"] == 0.0 and same.image is b.color.mean

@@ -113,3 +113,25 @@ def test_guard_uses_the_exact_median_floor():
         thr = t_quantile(2.0, np.maximum(buf.k - 1.0, 1.0))[..., None]
         bad = ((np.abs(img - buf.color.mean) > thr * sd) & known).any(-1) & known.all(-1)
         np.testing.assert_array_equal(res.image, np.where(bad[..., None], buf.color.mean, img))
+
+
+def test_guard_counts_float_rounding_apart_from_corrections():
+    """A regression's float64 rounding at zero-variance pixels (a flat
+    background fitted exactly up to 1e-17) is set back to the exact mean but
+    counted in ``guard_rounding``, not in ``guard_fraction``; a real
+    contradiction of the same pixels' samples is counted as corrected."""
+    flat = [np.full((4, 5, 3), 0.432)] * 4
+    buf = Buffers.from_subsets(flat, [4] * 4)                  # zero variance everywhere
+    img = buf.color.mean.copy()
+    img[:2] = np.nextafter(img[:2], 1.0)                       # 1 ulp off: 10 of 20 pixels
+    res = consistency_guard(MethodResult(img, np.zeros(buf.shape)), buf, z=3.0)
+    np.testing.assert_array_equal(res.image, buf.color.mean)
+    assert res.info["guard_fraction"] == 0.0
+    assert res.info["guard_rounding"] == 0.5
+    img[3, 4, 1] += 1e-6                                       # above float32 rounding of 0.432
+    res = consistency_guard(MethodResult(img, np.zeros(buf.shape)), buf, z=3.0)
+    np.testing.assert_array_equal(res.image, buf.color.mean)
+    assert res.info["guard_fraction"] == 1 / 20
+    assert res.info["guard_rounding"] == 0.5
+    clean = consistency_guard(MethodResult(buf.color.mean.copy() * 1.0, np.zeros(buf.shape)), buf, z=3.0)
+    assert clean.info["guard_fraction"] == clean.info["guard_rounding"] == 0.0
