@@ -130,7 +130,7 @@ Measurements and design notes: docs/notes/lp.md
 from __future__ import annotations
 
 import threading
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from functools import lru_cache
 
 import numpy as np
@@ -1412,6 +1412,17 @@ def _result(res: LPFit, kept: np.ndarray | None = None) -> MethodResult:
     }
     error = res.error if kept is None else res.error + kept
     return MethodResult(res.image, error, info, dimension=mean_rank, fit=res)
+
+
+def map_result(buf: Buffers, params: Params | None = None) -> MethodResult:
+    """The reconstruction the loop hands :func:`sample_map` between
+    iterations (the optional member of ``core.method.Method``):
+    :func:`reconstruct` without the kept noise, which only the error map
+    shown and stored at the end reads (the sampler reads the Eq. 4-7
+    estimate); the same image and the same sample map, without the
+    calibrated variance the kept noise needs."""
+    params = params if isinstance(params, Params) else params_from_dict(Params, params)
+    return reconstruct(buf, replace(params, kept_noise=False) if params.kept_noise else params)
 
 
 def sample_map(buf: Buffers, result: MethodResult, budget: int, params: Params | None = None,

@@ -60,7 +60,8 @@ class Method(Protocol):
     ``map_result(buf, params) -> MethodResult``, the reconstruction the loop
     hands ``sample_map`` between iterations when it may be cheaper than the
     final one (oidn: its error estimate without the albedo / normal
-    prefilter); without it the loop calls ``reconstruct``.
+    prefilter; lp, rhf: without the kept noise of the error map); without it
+    the loop calls ``reconstruct``.
     """
 
     NAME: str

@@ -87,7 +87,7 @@ Measurements and design notes: docs/notes/rhf.md
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import NamedTuple
 
 import numpy as np
@@ -1637,6 +1637,17 @@ def reconstruct(buf: Buffers, params: Params | None = None) -> MethodResult:
     res = rhf_reconstruct(buf.color.mean, cvar.pop, feats, fvars, buf.n, params, zero_var=zero)
     kept = retained_noise(res.image, buf.color.mean, buf.calibrated_variance()) if params.kept_noise else None
     return _result(res, kept)
+
+
+def map_result(buf: Buffers, params: Params | None = None) -> MethodResult:
+    """The reconstruction the loop hands :func:`sample_map` between
+    iterations (the optional member of ``core.method.Method``):
+    :func:`reconstruct` without the kept noise, which only the error map
+    shown and stored at the end reads (the sampler reads the Eq. 12
+    estimate); the same image and the same sample map, without the
+    calibrated variance the kept noise needs."""
+    params = params if isinstance(params, Params) else params_from_dict(Params, params)
+    return reconstruct(buf, replace(params, kept_noise=False) if params.kept_noise else params)
 
 
 def sample_map(buf: Buffers, result: MethodResult, budget: int, params: Params | None,

@@ -154,3 +154,29 @@ def test_denoise_adds_the_term_from_the_given_variance(mod):
     off = mod.denoise(y, var, params={"kept_noise": False})
     assert np.array_equal(on.image, off.image)
     np.testing.assert_allclose(on.error, off.error + errormap.retained_noise(on.image, y, var), rtol=1e-12)
+
+
+def test_map_result_is_the_reconstruction_without_the_kept_noise():
+    """lp and rhf hand the sampler a reconstruction without the kept noise:
+    the same image, the same sample map, the papers' error map."""
+    from core import lp, rhf
+    rng = np.random.default_rng(11)
+    h, w = 24, 28
+    yy, xx = np.mgrid[0:h, 0:w] / float(w)
+    truth = np.stack([0.2 + 0.6 * xx, 0.3 + 0.4 * yy, 0.5 + 0.3 * np.sin(9 * xx)], -1)
+    colors, feats = [], []
+    for _ in range(4):
+        noise = rng.normal(0.0, 0.1, (h, w, 3))
+        colors.append(truth + noise)
+        feats.append({"albedo": np.clip(truth + 0.5 * noise, 0, None), "normal": np.dstack([0 * xx, yy, 1 + 0 * xx]),
+                      "depth": (1 + xx)[..., None]})
+    buf = Buffers.from_subsets(colors, [2] * 4, feats)
+    for mod in (lp, rhf):
+        full = mod.reconstruct(buf, mod.Params())
+        quick = mod.map_result(buf, mod.Params())
+        plain = mod.reconstruct(buf, mod.Params(kept_noise=False))
+        np.testing.assert_array_equal(quick.image, full.image)
+        np.testing.assert_array_equal(quick.error, plain.error)
+        assert np.all(full.error >= quick.error) and np.any(full.error > quick.error)
+        np.testing.assert_array_equal(mod.sample_map(buf, quick, 500, mod.Params(), {}),
+                                      mod.sample_map(buf, full, 500, mod.Params(), {}))
