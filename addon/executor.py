@@ -299,6 +299,7 @@ class CyclesExecutor:
         self.renders = 0
         self.hold = None             # hold_samples_at: the run's one final count
         self.pattern = None          # the sampling pattern the renders use (after entering)
+        self.initial_pattern = None  # the pattern before release_hold, if it was called
 
     # -------------------------------------------------------------- lifecycle
     def hold_samples_at(self, count: int) -> None:
@@ -312,6 +313,25 @@ class CyclesExecutor:
         Elsewhere (4.2 / 4.3, or not called) Tabulated Sobol, whose subsets of
         any length merge exactly."""
         self.hold = max(1, int(count))
+
+    def release_hold(self) -> None:
+        """End a held count (``hold_samples_at``): ``auto`` chose adaptive
+        sampling after an initial pass rendered at the held count.  Renders
+        from now on use Tabulated Sobol, whose samples ``[offset, offset +
+        length)`` do not depend on the count; the initial pass keeps the
+        scene pattern's first samples (``initial_pattern`` says which).
+        Before entering it only drops the hold."""
+        if self.hold is None:
+            return
+        self.hold = None
+        if self.pattern is None:  # not entered yet: _configure picks Tabulated Sobol
+            return
+        self.initial_pattern = self.pattern
+        try:
+            self.guard.set(self.scene.cycles, "sampling_pattern", "TABULATED_SOBOL")
+        except TypeError:  # a version without it: its only pattern is count-independent
+            pass
+        self.pattern = str(getattr(self.scene.cycles, "sampling_pattern", ""))
 
     def __enter__(self):
         try:

@@ -155,7 +155,9 @@ class Session:
             "warmup": "one 1-spp render per scene before any timing, persistent data on for the "
                       "whole scene, so no measured run pays the BVH build or kernel load",
             "runs": f"our methods through AdaptiveRun + CyclesExecutor (initial 4 spp in 4 sample "
-                    f"subsets, 4 iterations; Tabulated Sobol pattern), seed {c['seed']}; a run "
+                    f"subsets, 4 iterations; Tabulated Sobol pattern, except runs that end at one count "
+                    f"(uniform, the uniform-<method> runs, auto choosing uniform sampling: the scene's own "
+                    f"pattern with the count held, Blender 4.4+)), seed {c['seed']}; a run "
                     f"is stopped like a cancel after {c['run_max_seconds']:g} s (0: never) and is then "
                     "flagged partial",
             "oracle": "(budgets above the 4-spp initial pass only: below it nothing adapts) the same loop; the sample map is the true per-pixel relative error of the "

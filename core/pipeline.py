@@ -18,7 +18,9 @@ does not depend on which executor rendered it; ``drop_passes(names)``, which
 stops rendering feature passes that carry no information; and
 ``hold_samples_at(count)``, called before entering when every pixel of the run
 ends at one known count (:func:`hold_samples`), so the renders may use a
-count-tuned sampling pattern.
+count-tuned sampling pattern, and ``release_hold()``, called when a selecting
+method's choice samples adaptively after all: the renders from then on use a
+pattern whose subsets of any length merge exactly.
 
 ``AdaptiveRun.steps()`` is a generator of ``Progress`` records, so the modal
 operator (a timer steps it), the batch CLI (a for loop printing lines) and the
@@ -125,9 +127,10 @@ class Options:
     #: Tabulated Sobol merges subsets of any length exactly; a count-tuned pattern
     #: (Blue Noise) only with the count held (CyclesExecutor.hold_samples_at)
     scene_pattern: bool = param(True, "a run that samples uniformly at a whole spp (uniform, oidn "
-                                "without adaptive sampling; no time limit or target) renders with the "
-                                "scene's own sampling pattern, as plain Cycles does (Blender 4.4+); off: "
-                                "Tabulated Sobol, the same noise on every Blender version",
+                                "without adaptive sampling, auto when it chooses uniform sampling; no "
+                                "time limit or target) renders with the scene's own sampling pattern, "
+                                "as plain Cycles does (Blender 4.4+); off: Tabulated Sobol, the same "
+                                "noise on every Blender version",
                                 label="Scene's Sampling Pattern")
     params: dict = field(default_factory=dict, metadata={"cli": False, "ui": False})
     #: extra passes to read beyond the method's own
@@ -770,6 +773,10 @@ class AdaptiveRun:
         return oidn.needs_main_thread(getattr(self.params, "backend", "auto"))
 
     def _adopt(self, method, report: dict, params: dict | None = None) -> None:
+        if method.ADAPTIVE:  # its pixels end at unequal counts: no held count (held_count)
+            release = getattr(self.executor, "release_hold", None)  # optional member, see module notes
+            if release is not None:
+                release()
         self.method = method
         self.params = params_from_dict(method.Params, params or {})
         self.selection = report
@@ -1035,15 +1042,23 @@ def selects(method) -> bool:
 
 def held_count(options: Options, method, prior=None) -> int | None:
     """The one sample count every pixel of a run ends with, known before its
-    first render: a method that samples uniformly (``ADAPTIVE`` off, not a
-    selecting one) at an integral ``spp``, without a time limit, a target
-    error or samples carried from an earlier frame (``prior``), with
-    ``Options.scene_pattern`` on; its initial
-    pass renders the whole budget as subsets of ``[0, spp)``.  None
+    first render: a method that samples uniformly (``ADAPTIVE`` off) at an
+    integral ``spp``, without a time limit, a target error or samples carried
+    from an earlier frame (``prior``), with ``Options.scene_pattern`` on; its
+    initial pass renders the whole budget as subsets of ``[0, spp)``.  None
     otherwise.  An executor may then render with a count-tuned pattern
-    (``CyclesExecutor.hold_samples_at``)."""
+    (``CyclesExecutor.hold_samples_at``).
+
+    A selecting method (``auto``) holds it too: its initial pass is the
+    subsets ``[0, initial)`` of the held count, and a uniform choice renders
+    the rest as subsets up to ``spp``, so the image is the scene pattern's
+    ``spp`` render, as for that candidate run alone.  An adaptive choice ends
+    the hold (:meth:`AdaptiveRun._adopt`, the executor's ``release_hold``)
+    before its first render: its samples after the initial pass come from a
+    count-independent pattern (each part of the mean is unbiased, so the
+    merge is too)."""
     spp = float(options.spp)
-    if not options.scene_pattern or method.ADAPTIVE or selects(method) or prior is not None:
+    if not options.scene_pattern or (method.ADAPTIVE and not selects(method)) or prior is not None:
         return None
     if options.max_seconds > 0 or options.target_error > 0 or spp < 1 or spp != np.floor(spp):
         return None

@@ -696,6 +696,9 @@ class RenderJob:
         pattern = getattr(self.executor, "pattern", None)
         if pattern:  # Tabulated Sobol, or the scene's own with the count held (hold_samples_at)
             summary["sampling_pattern"] = pattern
+        initial = getattr(self.executor, "initial_pattern", None)
+        if initial and initial != pattern:  # auto chose adaptive sampling after a held initial pass
+            summary["initial_sampling_pattern"] = initial
         _info_fields(summary, result.info)
         _info_fields(summary, run.prior_info, "reproject_")
         if run.selection is not None:  # auto: what it chose, each candidate's prediction, why

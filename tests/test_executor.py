@@ -148,6 +148,76 @@ def _merged_uniform(scene, spp, hold):
     return run.buffers.color.mean, ex
 
 
+def test_auto_choosing_uniform_sampling_renders_the_scene_patterns_image():
+    """auto holds the budget's count: with a uniform choice its initial pass
+    and the rest merge into the scene pattern's render at that count (what
+    the chosen candidate run alone gives); an adaptive choice releases it."""
+    from cycles_adaptive.bench.peers import PlainCycles
+    from cycles_adaptive.core.pipeline import hold_samples
+    scene = build_scene(24, 16)
+    try:
+        scene.cycles.sampling_pattern = "BLUE_NOISE"
+    except TypeError:
+        pytest.skip("this Blender has no blue-noise pattern")
+    vl = bpy.context.view_layer
+    runs = {}
+    for sampling in ("uniform", "adaptive"):
+        opts = Options(method="auto", spp=12.0, seed=0, params={"candidates": "mean", "sampling": sampling})
+        ex = CyclesExecutor(scene, vl, ("normal", "albedo", "depth"), seed=0)
+        held = hold_samples(ex, opts, AdaptiveRun(ex, opts).method)
+        with ex:
+            run = AdaptiveRun(ex, opts)
+            for _ in run.steps():
+                pass
+        runs[sampling] = (run, ex, held)
+    with PlainCycles(scene, vl, 0, "BLUE_NOISE") as pc:
+        blue = pc.render(12)["rgb"]
+    run, ex, held = runs["uniform"]
+    assert run.method.NAME == "uniform" and np.all(run.buffers.n == 12)
+    if hasattr(scene.cycles, "use_sample_subset"):  # 4.4+
+        assert held == 12 and ex.pattern == "BLUE_NOISE" and ex.initial_pattern is None
+        np.testing.assert_allclose(run.buffers.color.mean, blue, rtol=1e-5, atol=1e-6)
+    else:
+        assert ex.pattern == "TABULATED_SOBOL"
+    run, ex, held = runs["adaptive"]
+    assert run.method.NAME == "var" and ex.pattern == "TABULATED_SOBOL" and ex.hold is None
+    if hasattr(scene.cycles, "use_sample_subset"):
+        assert ex.initial_pattern == "BLUE_NOISE"
+    assert scene.cycles.sampling_pattern == "BLUE_NOISE"
+
+
+def test_a_released_hold_renders_the_samples_an_unheld_run_renders():
+    """auto's adaptive choice after an initial pass at the held count: from
+    ``release_hold`` on, the renders are Tabulated Sobol's samples [offset,
+    offset + length), equal to those of an executor that never held (exact
+    merges with any later task); the initial pass stays the scene pattern's,
+    and the scene's own pattern is restored on exit."""
+    scene = build_scene(24, 16)
+    try:
+        scene.cycles.sampling_pattern = "BLUE_NOISE"
+    except TypeError:
+        pytest.skip("this Blender has no blue-noise pattern")
+    if not hasattr(scene.cycles, "use_sample_subset"):
+        pytest.skip("a held count needs Blender 4.4+ (sample subsets)")
+    vl = bpy.context.view_layer
+    ex = CyclesExecutor(scene, vl, (), seed=0)
+    ex.hold_samples_at(12)
+    with ex:
+        first = _render_full(ex, 4)
+        assert ex.pattern == "BLUE_NOISE"
+        ex.release_hold()
+        assert ex.pattern == "TABULATED_SOBOL" and ex.initial_pattern == "BLUE_NOISE"
+        rest = _render_full(ex, 8, offset=4)
+        ex.release_hold()  # a second call changes nothing
+        assert ex.pattern == "TABULATED_SOBOL"
+    assert scene.cycles.sampling_pattern == "BLUE_NOISE"
+    with CyclesExecutor(scene, vl, (), seed=0) as free:
+        rest_free = _render_full(free, 8, offset=4)
+        first_free = _render_full(free, 4)
+    np.testing.assert_allclose(rest, rest_free, rtol=1e-5, atol=1e-6)
+    assert np.abs(first - first_free).max() > 1e-3  # the initial pass was the held Blue Noise
+
+
 def test_a_held_count_renders_the_scenes_own_pattern_and_merges_into_its_render():
     """With the run's one count held (Blender 4.4+), the subsets of a
     Blue Noise scene merge into Blue Noise's render at that count, the one

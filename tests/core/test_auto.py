@@ -290,3 +290,66 @@ def test_an_oidn_choice_runs_without_the_consistency_guard(monkeypatch):
     lp = _run(FakeExecutor(truth, feats), spp=6, initial_spp=2, subsets=2, params={"candidates": "awr"})
     lp.reconstruct()
     assert seen[-1] == Options().guard_z
+
+
+class HoldingExecutor(FakeExecutor):
+    """Records the held count, its release and every render, in order."""
+
+    def __init__(self, truth, features=None):
+        super().__init__(truth, features)
+        self.events = []
+
+    def hold_samples_at(self, count):
+        self.events.append(("hold", count))
+
+    def release_hold(self):
+        self.events.append(("release",))
+
+    def render(self, task):
+        self.events.append(("render", task.offset, task.samples))
+        return super().render(task)
+
+
+def _held_run(spp, **params):
+    from core.pipeline import hold_samples
+    truth, feats = _scene(24, 24)
+    ex = HoldingExecutor(truth, feats)
+    opts = Options(method="auto", spp=spp, params=params)
+    run = AdaptiveRun(ex, opts)
+    held = hold_samples(ex, opts, run.method)
+    for _ in run.steps():
+        pass
+    return run, ex, held
+
+
+def test_a_uniform_choice_keeps_the_held_count_to_the_end():
+    """auto holds the budget's count: its initial pass and the uniform rest
+    are subsets tiling [0, spp) of one held table, never released."""
+    run, ex, held = _held_run(12, candidates="mean", sampling="uniform")
+    assert held == 12 and ex.events[0] == ("hold", 12)
+    assert run.method.NAME == "uniform" and ("release",) not in ex.events
+    spans = sorted((o, o + n) for kind, *rest in ex.events if kind == "render" for o, n in [rest])
+    assert spans[0][0] == 0 and spans[-1][1] == 12
+    assert all(a[1] == b[0] for a, b in zip(spans, spans[1:]))  # no gap, no overlap
+    np.testing.assert_array_equal(run.buffers.n, 12)
+
+
+def test_an_adaptive_choice_releases_the_hold_before_its_first_render():
+    run, ex, held = _held_run(12, candidates="mean", sampling="adaptive")
+    assert held == 12 and run.method.NAME == "var"
+    kinds = [e[0] for e in ex.events]
+    assert kinds.count("release") == 1
+    first_after = kinds.index("release")
+    initial = [e for e in ex.events[:first_after] if e[0] == "render"]
+    assert initial and max(o + n for _, o, n in initial) == run.initial_spp  # the initial pass only
+    assert any(k == "render" for k in kinds[first_after:])
+
+
+@pytest.mark.parametrize("extra", [{"max_seconds": 30.0}, {"target_error": 0.01}, {"spp": 7.5},
+                                   {"scene_pattern": False}])
+def test_auto_holds_no_count_where_the_final_count_is_unknown(extra):
+    from core.pipeline import held_count
+    opts = Options(method="auto", **dict({"spp": 8.0}, **extra))
+    assert held_count(opts, auto) is None
+    assert held_count(Options(method="auto", spp=8.0), auto) == 8
+    assert held_count(Options(method="auto", spp=8.0), auto, prior=lambda b: None) is None
