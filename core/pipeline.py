@@ -1068,11 +1068,14 @@ def held_count(options: Options, method, prior=None) -> int | None:
 def hold_samples(executor, options: Options, method, prior=None) -> int | None:
     """Tell ``executor`` the run's one final count (:func:`held_count`)
     through its optional ``hold_samples_at``, before it is entered; the
-    count, or None where there is none (or the executor cannot hold it)."""
+    count, or None where there is none (or the executor cannot hold it; for
+    a selecting method, also where it cannot release it again)."""
     count = held_count(options, method, prior)
     hold = getattr(executor, "hold_samples_at", None)  # optional member, see module notes
     if count is None or hold is None:
         return None
+    if selects(method) and getattr(executor, "release_hold", None) is None:
+        return None  # an adaptive choice could not leave the count-tuned pattern
     hold(count)
     return count
 

@@ -353,3 +353,14 @@ def test_auto_holds_no_count_where_the_final_count_is_unknown(extra):
     assert held_count(opts, auto) is None
     assert held_count(Options(method="auto", spp=8.0), auto) == 8
     assert held_count(Options(method="auto", spp=8.0), auto, prior=lambda b: None) is None
+
+
+def test_an_executor_that_cannot_release_is_not_held_for_auto():
+    from core.pipeline import hold_samples
+
+    class HoldOnly(FakeExecutor):
+        def hold_samples_at(self, count):
+            raise AssertionError("held without a way back")
+
+    truth, feats = _scene(16, 16)
+    assert hold_samples(HoldOnly(truth, feats), Options(method="auto", spp=8.0), auto) is None
