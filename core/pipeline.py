@@ -1060,6 +1060,8 @@ def held_count(options: Options, method, prior=None) -> int | None:
     spp = float(options.spp)
     if not options.scene_pattern or (method.ADAPTIVE and not selects(method)) or prior is not None:
         return None
+    if selects(method) and (options.params or {}).get("sampling") == "adaptive":
+        return None  # told to choose among adaptive candidates only: no uniform choice to hold for
     if options.max_seconds > 0 or options.target_error > 0 or spp < 1 or spp != np.floor(spp):
         return None
     return int(spp)

@@ -165,6 +165,9 @@ def test_auto_choosing_uniform_sampling_renders_the_scene_patterns_image():
         opts = Options(method="auto", spp=12.0, seed=0, params={"candidates": "mean", "sampling": sampling})
         ex = CyclesExecutor(scene, vl, ("normal", "albedo", "depth"), seed=0)
         held = hold_samples(ex, opts, AdaptiveRun(ex, opts).method)
+        if sampling == "adaptive":  # forced adaptive holds nothing; held as when auto predicts it
+            assert held is None
+            ex.hold_samples_at(12)
         with ex:
             run = AdaptiveRun(ex, opts)
             for _ in run.steps():

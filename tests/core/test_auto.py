@@ -334,7 +334,10 @@ def test_a_uniform_choice_keeps_the_held_count_to_the_end():
     np.testing.assert_array_equal(run.buffers.n, 12)
 
 
-def test_an_adaptive_choice_releases_the_hold_before_its_first_render():
+def test_an_adaptive_choice_releases_the_hold_before_its_first_render(monkeypatch):
+    from core import pipeline
+    # an adaptive choice the sampling parameter does not force (that case holds nothing)
+    monkeypatch.setattr(pipeline, "held_count", lambda options, method, prior=None: 12)
     run, ex, held = _held_run(12, candidates="mean", sampling="adaptive")
     assert held == 12 and run.method.NAME == "var"
     kinds = [e[0] for e in ex.events]
@@ -346,7 +349,7 @@ def test_an_adaptive_choice_releases_the_hold_before_its_first_render():
 
 
 @pytest.mark.parametrize("extra", [{"max_seconds": 30.0}, {"target_error": 0.01}, {"spp": 7.5},
-                                   {"scene_pattern": False}])
+                                   {"scene_pattern": False}, {"params": {"sampling": "adaptive"}}])
 def test_auto_holds_no_count_where_the_final_count_is_unknown(extra):
     from core.pipeline import held_count
     opts = Options(method="auto", **dict({"spp": 8.0}, **extra))
