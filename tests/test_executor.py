@@ -148,17 +148,23 @@ def _merged_uniform(scene, spp, hold):
     return run.buffers.color.mean, ex
 
 
+def _blue_noise_scene():
+    """A 24x16 test scene with the Blue Noise pattern (skips where there is none)."""
+    scene = build_scene(24, 16)
+    try:
+        scene.cycles.sampling_pattern = "BLUE_NOISE"
+    except TypeError:
+        pytest.skip("this Blender has no blue-noise pattern")
+    return scene
+
+
 def test_auto_choosing_uniform_sampling_renders_the_scene_patterns_image():
     """auto holds the budget's count: with a uniform choice its initial pass
     and the rest merge into the scene pattern's render at that count (what
     the chosen candidate run alone gives); an adaptive choice releases it."""
     from cycles_adaptive.bench.peers import PlainCycles
     from cycles_adaptive.core.pipeline import hold_samples
-    scene = build_scene(24, 16)
-    try:
-        scene.cycles.sampling_pattern = "BLUE_NOISE"
-    except TypeError:
-        pytest.skip("this Blender has no blue-noise pattern")
+    scene = _blue_noise_scene()
     vl = bpy.context.view_layer
     runs = {}
     for sampling in ("uniform", "adaptive"):
@@ -195,11 +201,7 @@ def test_a_released_hold_renders_the_samples_an_unheld_run_renders():
     offset + length), equal to those of an executor that never held (exact
     merges with any later task); the initial pass stays the scene pattern's,
     and the scene's own pattern is restored on exit."""
-    scene = build_scene(24, 16)
-    try:
-        scene.cycles.sampling_pattern = "BLUE_NOISE"
-    except TypeError:
-        pytest.skip("this Blender has no blue-noise pattern")
+    scene = _blue_noise_scene()
     if not hasattr(scene.cycles, "use_sample_subset"):
         pytest.skip("a held count needs Blender 4.4+ (sample subsets)")
     vl = bpy.context.view_layer
@@ -227,11 +229,7 @@ def test_a_held_count_renders_the_scenes_own_pattern_and_merges_into_its_render(
     plain Cycles gives; without it (or on 4.2 / 4.3) the loop renders
     Tabulated Sobol."""
     from cycles_adaptive.bench.peers import PlainCycles
-    scene = build_scene(24, 16)
-    try:
-        scene.cycles.sampling_pattern = "BLUE_NOISE"
-    except TypeError:
-        pytest.skip("this Blender has no blue-noise pattern")
+    scene = _blue_noise_scene()
     held, ex = _merged_uniform(scene, 12, hold=True)
     free, ex_free = _merged_uniform(scene, 12, hold=False)
     assert scene.cycles.sampling_pattern == "BLUE_NOISE"  # restored

@@ -32,7 +32,8 @@ from cycles_adaptive.core import metrics, oidn, rhf  # noqa: E402
 SCENES = "cornell,dof,soft_shadows,glossy,motion_blur,animated"
 
 
-def _denoise(color, albedo, normal, prefilter="accurate"):
+def denoise(color, albedo, normal, prefilter="accurate"):
+    """pyoidn, high quality, ``prefilter`` (accurate: OIDN's own on the guides)."""
     return oidn.oidn_filter(color[..., :3], albedo, normal, quality="high", prefilter=prefilter)
 
 
@@ -63,14 +64,14 @@ def study_spp(scenes):
         b16 = rs.load(name, 16)
         ref = rs.reference(name, b16.n.shape)
         c16 = b16.color.mean
-        row = [metrics.relmse(_denoise(c16, b16.feature("albedo"), b16.feature("normal")), ref)]
+        row = [metrics.relmse(denoise(c16, b16.feature("albedo"), b16.feature("normal")), ref)]
         times = {}
         for spp in (32, 64, 128):
             _, aux, times[spp] = _render(scene, spp, seed=5)
-            row.append(metrics.relmse(_denoise(c16, aux["albedo"], aux["normal"]), ref))
+            row.append(metrics.relmse(denoise(c16, aux["albedo"], aux["normal"]), ref))
         _, _, times[16] = _render(scene, 16, seed=5)
         c32, f32, _ = _render(scene, 32, seed=0)
-        row.append(metrics.relmse(_denoise(c32, f32["albedo"], f32["normal"]), ref))
+        row.append(metrics.relmse(denoise(c32, f32["albedo"], f32["normal"]), ref))
         print(f"| {name} | " + " | ".join(f"{e:.3e}" for e in row)
               + f" | {times[32] / times[16]:.2f} | {times[128] / times[16]:.2f} |", flush=True)
 
@@ -88,9 +89,9 @@ def study_prefilter(scenes):
             fh = rhf.prefilter_features(F, V, p).astype(np.float64)
             nrm, alb = fh[..., 0:3], fh[..., 3:6]
             c = b.color.mean
-            errs = [metrics.relmse(_denoise(c, b.feature("albedo"), b.feature("normal")), ref),
-                    metrics.relmse(_denoise(c, alb, nrm, "none"), ref),
-                    metrics.relmse(_denoise(c, alb, nrm, "accurate"), ref)]
+            errs = [metrics.relmse(denoise(c, b.feature("albedo"), b.feature("normal")), ref),
+                    metrics.relmse(denoise(c, alb, nrm, "none"), ref),
+                    metrics.relmse(denoise(c, alb, nrm, "accurate"), ref)]
             print(f"| {name} | {spp} | " + " | ".join(f"{e:.3e}" for e in errs) + " |", flush=True)
 
 

@@ -21,9 +21,10 @@ import sys
 import numpy as np
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+import oidn_aux_study  # noqa: E402  (the denoise call both studies make)
 import rhf_study as rs  # noqa: E402  (cache, references, package loading)
 
-from cycles_adaptive.core import metrics, oidn  # noqa: E402
+from cycles_adaptive.core import metrics  # noqa: E402
 
 SCENES = "cornell,dof,soft_shadows,glossy,motion_blur,animated"
 
@@ -35,7 +36,7 @@ def denoise(color, aux_from, aux_other=None, mask=None):
     if aux_other is not None:
         albedo = np.where(mask[..., None], aux_other.features["albedo"].mean, albedo)
         normal = np.where(mask[..., None], aux_other.features["normal"].mean, normal)
-    return oidn.oidn_filter(color, albedo, normal, quality="high", prefilter="accurate")
+    return oidn_aux_study.denoise(color, albedo, normal)
 
 
 def main(argv=None):
