@@ -327,11 +327,16 @@ class CyclesExecutor:
         if self.pattern is None:  # not entered yet: _configure picks Tabulated Sobol
             return
         self.initial_pattern = self.pattern
+        self._count_independent_pattern()
+
+    def _count_independent_pattern(self) -> None:
+        """Tabulated Sobol (restored on exit), and :attr:`pattern` updated."""
+        c = self.scene.cycles
         try:
-            self.guard.set(self.scene.cycles, "sampling_pattern", "TABULATED_SOBOL")
+            self.guard.set(c, "sampling_pattern", "TABULATED_SOBOL")
         except TypeError:  # a version without it: its only pattern is count-independent
             pass
-        self.pattern = str(getattr(self.scene.cycles, "sampling_pattern", ""))
+        self.pattern = str(getattr(c, "sampling_pattern", ""))
 
     def __enter__(self):
         try:
@@ -389,11 +394,9 @@ class CyclesExecutor:
         # A count held for the whole run (hold_samples_at) keeps the scene's own pattern.
         if self.hold is None or not hasattr(c, "use_sample_subset"):
             self.hold = None
-            try:
-                g.set(c, "sampling_pattern", "TABULATED_SOBOL")
-            except TypeError:  # a version without it: its only pattern is count-independent
-                pass
-        self.pattern = str(getattr(c, "sampling_pattern", ""))
+            self._count_independent_pattern()
+        else:
+            self.pattern = str(getattr(c, "sampling_pattern", ""))
         g.set(c, "samples", c.samples)
         g.set(c, "sample_offset", c.sample_offset)
         if hasattr(c, "use_sample_subset"):

@@ -35,10 +35,13 @@ feature-pooled); the channel mean of (2).
 """
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 
 from . import parallel
 from .filters import box_sum
+from .method import params_from_dict
 
 __all__ = ["RADIUS", "retained_noise"]
 
@@ -99,3 +102,13 @@ def retained_noise(image, mean, var, radius: int = RADIUS, rows: int = _BAND_ROW
 
     parallel.run_bands(band, h, max(int(rows), 1), _THREAD_MIN_PIXELS, w)
     return out
+
+
+def without_kept_noise(reconstruct, params_cls, buf, params=None):
+    """``reconstruct(buf, params)`` with ``kept_noise`` off: what a method
+    whose error map adds :func:`retained_noise` hands its sampler between
+    iterations (``map_result``; the image and the sampler's estimate are the
+    same, without the calibrated variance the kept noise needs).
+    ``params``: a ``params_cls`` instance, a dict or None."""
+    p = params if isinstance(params, params_cls) else params_from_dict(params_cls, params)
+    return reconstruct(buf, replace(p, kept_noise=False) if p.kept_noise else p)

@@ -130,14 +130,14 @@ Measurements and design notes: docs/notes/lp.md
 from __future__ import annotations
 
 import threading
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 from functools import lru_cache
 
 import numpy as np
 
 from . import parallel
 from .buffers import Buffers
-from .errormap import retained_noise
+from .errormap import retained_noise, without_kept_noise
 from .lp_solve import Design, ring_fits, ring_layout
 from .method import MethodResult, allocate, gain_exponent, param, params_from_dict
 
@@ -1421,8 +1421,7 @@ def map_result(buf: Buffers, params: Params | None = None) -> MethodResult:
     shown and stored at the end reads (the sampler reads the Eq. 4-7
     estimate); the same image and the same sample map, without the
     calibrated variance the kept noise needs."""
-    params = params if isinstance(params, Params) else params_from_dict(Params, params)
-    return reconstruct(buf, replace(params, kept_noise=False) if params.kept_noise else params)
+    return without_kept_noise(reconstruct, Params, buf, params)
 
 
 def sample_map(buf: Buffers, result: MethodResult, budget: int, params: Params | None = None,

@@ -87,14 +87,14 @@ Measurements and design notes: docs/notes/rhf.md
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 from typing import NamedTuple
 
 import numpy as np
 
 from . import parallel
 from .buffers import Buffers
-from .errormap import retained_noise
+from .errormap import retained_noise, without_kept_noise
 from .filters import (VALUE_LIMIT, VAR_LIMIT, box_mean, box_sum, guided_filter, guided_filter_mean,
                       nlm_center_weights, nlm_filter, sobel_gradient, window_offsets)
 from .method import (MethodResult, allocate, param, params_from_dict, relative_error,
@@ -1646,8 +1646,7 @@ def map_result(buf: Buffers, params: Params | None = None) -> MethodResult:
     shown and stored at the end reads (the sampler reads the Eq. 12
     estimate); the same image and the same sample map, without the
     calibrated variance the kept noise needs."""
-    params = params if isinstance(params, Params) else params_from_dict(Params, params)
-    return reconstruct(buf, replace(params, kept_noise=False) if params.kept_noise else params)
+    return without_kept_noise(reconstruct, Params, buf, params)
 
 
 def sample_map(buf: Buffers, result: MethodResult, budget: int, params: Params | None,
