@@ -5,7 +5,7 @@ from __future__ import annotations
 import bpy
 import numpy as np
 
-from ..core.buffers import LUMA
+from ..core.buffers import luminance
 
 RESULT, SAMPLES, ERROR = "Cycles Adaptive Result", "Cycles Adaptive Samples", "Cycles Adaptive Error"
 COMPOSITE = "Cycles Adaptive Composite"
@@ -53,7 +53,7 @@ def prepare_result(image: np.ndarray, samples: np.ndarray, error: np.ndarray, al
     out = {RESULT: float_pixels(rgba)}
     smax = max(float(np.max(samples)), 1.0)
     out[SAMPLES] = float_pixels((samples / smax)[:, :, None])
-    lum = image @ LUMA
+    lum = luminance(image)
     rel = np.sqrt(np.maximum(error, 0.0)) / (np.abs(lum) + 0.01)
     p99 = float(np.percentile(rel, 99)) if rel.size else 1.0
     out[ERROR] = float_pixels((np.clip(rel / max(p99, 1e-12), 0, 1))[:, :, None])

@@ -137,7 +137,7 @@ from functools import lru_cache
 import numpy as np
 
 from . import wavelets as wv
-from .buffers import Buffers, LUMA
+from .buffers import Buffers, luminance
 from .filters import box_sum
 from .method import MethodResult, allocate, median3x3, param, params_from_dict, t_quantile
 
@@ -916,7 +916,7 @@ def _sampler_inputs(buf: Buffers, params: Params) -> _SamplerInputs:
     levels = min(int(params.sample_levels), wv.max_levels((h, w)))
     s2 = np.minimum(prep.var * np.maximum(prep.n, 1.0)[..., None], _BIG_VAR)
     sigma_f = np.where(prep.missing, 1.0, mitchell_variance(prep.mean, s2, prep.n))
-    lum = prep.mean @ LUMA
+    lum = luminance(prep.mean)
     pos = lum[lum > 0]
     med = float(np.median(pos)) if pos.size else 0.0
     scale = float(params.sampler_intensity) / med if med > 0 and np.isfinite(med) else 1.0

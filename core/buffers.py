@@ -556,8 +556,20 @@ def _chan_update(stat: Stat, sl, mean_b, wb, cross, m2_b=None):
 
 
 def luminance(rgb: np.ndarray) -> np.ndarray:
-    """(..., 3) -> (...) Rec. 709 luminance."""
-    return rgb @ LUMA
+    """(..., 3) -> (...) float64 Rec. 709 luminance.
+
+    Written out as ``r L0 + g L1 + b L2`` rather than ``rgb @ LUMA``: the
+    matmul goes through BLAS, whose calls from two controller threads at once
+    took twice as long as from one (OpenBLAS contends for its own threads),
+    while element-wise products scale with the threads.  Same value up to
+    the last bit (BLAS may fuse the multiply-adds)."""
+    rgb = np.asarray(rgb, np.float64)
+    if rgb.ndim < 1 or rgb.shape[-1] != 3:
+        raise ValueError(f"luminance needs (..., 3) RGB, got shape {rgb.shape}")
+    out = np.multiply(rgb[..., 0], LUMA[0])
+    out += rgb[..., 1] * LUMA[1]
+    out += rgb[..., 2] * LUMA[2]
+    return out
 
 
 def is_background(position: np.ndarray, depth: np.ndarray | None = None) -> np.ndarray:

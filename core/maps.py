@@ -167,7 +167,7 @@ def pool_to_blocks(counts: np.ndarray, size: int) -> np.ndarray:
     up = lambda g: np.repeat(np.repeat(g.reshape(gh, gw), size, axis=0), size, axis=1)[:h, :w]
     out = up(base).astype(np.int64)
     if left > 0:  # less than a block's worth: single samples where the remainders are largest
-        rest = np.where(up(frac > 0) & (up(base) == up(s // a)), up(frac), 0.0)
+        rest = up(np.where((frac > 0) & (base == s // a), frac, 0.0))  # per block, then to pixels
         out += allocate(rest, left)
     return out
 

@@ -17,7 +17,7 @@ from typing import Any, Protocol, runtime_checkable
 
 import numpy as np
 
-from .buffers import LUMA, _tmp
+from .buffers import _tmp, luminance
 
 
 @dataclass
@@ -105,7 +105,7 @@ def relative_error(error: np.ndarray, image: np.ndarray, eps: float = 1e-3) -> n
 
     error : (H, W), image : (H, W, 3) -> (H, W) finite, >= 0.
     """
-    lum = np.asarray(image, np.float64) @ LUMA
+    lum = luminance(image)
     lum = np.where(np.isfinite(lum), lum, 0.0)
     e = np.where(np.isfinite(error), np.maximum(error, 0.0), 0.0)
     return e / (lum * lum + eps)
@@ -116,44 +116,87 @@ def allocate(weights: np.ndarray, budget: int, cap: np.ndarray | None = None) ->
 
     Largest-remainder rounding.  Non-finite or negative weights count as zero;
     all-zero weights fall back to uniform.  ``cap`` (optional, (H, W)) bounds
-    each pixel's count; the excess is redistributed to uncapped pixels.
+    each pixel's count; the excess is redistributed to uncapped pixels.  The
+    element-wise passes run over pieces of :data:`ALLOCATE_PIECE` elements on
+    the controller's threads; the weights' sum and the selection of the
+    largest remainders (``argpartition``, whose order among tied remainders
+    only the whole array defines) stay whole-array, so the counts do not
+    depend on the thread count.
 
     weights : (H, W) -> (H, W) int64
     """
-    w = np.asarray(weights, np.float64)
-    w = np.where(np.isfinite(w) & (w > 0), w, 0.0)
+    src = np.asarray(weights)
     budget = int(max(budget, 0))
-    out = np.zeros(w.shape, np.int64)
-    if budget == 0 or w.size == 0:
+    out = np.zeros(src.shape, np.int64)
+    if budget == 0 or src.size == 0:
         return out
-    cap_arr = None if cap is None else np.broadcast_to(np.asarray(cap, np.int64), w.shape)
-    if cap_arr is not None:
-        budget = min(budget, int(cap_arr.sum()))
+    flat = src.reshape(-1)
+    w = np.empty(flat.size)
+
+    def clean(p):
+        x = np.asarray(flat[p[0]:p[1]], np.float64)
+        w[p[0]:p[1]] = np.where(np.isfinite(x) & (x > 0), x, 0.0)
+
+    _pieces(clean, flat.size)
+    if cap is None:
+        _largest_remainder(w, budget, out.reshape(-1))
+        return out
+    cap_arr = np.broadcast_to(np.asarray(cap, np.int64), src.shape).reshape(-1)
+    budget = min(budget, int(cap_arr.sum()))
     remaining = budget
-    active = np.ones(w.shape, bool) if cap_arr is None else cap_arr > 0
+    got = out.reshape(-1)
+    add = np.empty(flat.size, np.int64)
+    active = cap_arr > 0
     for _ in range(64):
         if remaining <= 0 or not active.any():
             break
-        ww = np.where(active, w, 0.0)
-        if ww.sum() <= 0:
-            ww = active.astype(np.float64)
-        share = ww / ww.sum() * remaining
-        base = np.floor(share).astype(np.int64)
-        rest = remaining - int(base.sum())
-        if rest > 0:
-            frac = (share - base).ravel()
-            idx = np.argpartition(-frac, rest - 1)[:rest] if rest < frac.size else np.arange(frac.size)
-            base.ravel()[idx] += 1
-        add = base
-        if cap_arr is not None:
-            add = np.minimum(add, cap_arr - out)
-        out += add
+        _largest_remainder(np.where(active, w, 0.0), remaining, add, active)
+        np.minimum(add, cap_arr - got, out=add)
+        got += add
         remaining -= int(add.sum())
-        if cap_arr is not None:
-            active = out < cap_arr
-        else:
-            break
+        active = got < cap_arr
     return out
+
+
+#: elements per piece of :func:`allocate`'s element-wise passes (size only)
+ALLOCATE_PIECE = 1 << 18
+
+
+def _pieces(fn, n: int) -> None:
+    """``fn((a, b))`` over pieces of :data:`ALLOCATE_PIECE` elements of a flat
+    array of ``n``, on the controller's threads from :data:`INLINE_PIXELS` on."""
+    from . import parallel
+    pieces = parallel.bands(n, ALLOCATE_PIECE)
+    if n < INLINE_PIXELS:
+        for p in pieces:
+            fn(p)
+    else:
+        parallel.map_ordered(fn, pieces)
+
+
+def _largest_remainder(ww: np.ndarray, remaining: int, base: np.ndarray, active=None) -> None:
+    """Hamilton's largest-remainder rounding of ``ww / sum(ww) * remaining``
+    into ``base`` (flat int64, summing to ``remaining``): the floors, then one
+    more for the ``rest`` largest remainders.  All-zero ``ww``: ``active``
+    (default all) weighs 1."""
+    total = ww.sum()
+    if total <= 0:
+        ww = np.ones(ww.size) if active is None else active.astype(np.float64)
+        total = ww.sum()
+    neg_frac = np.empty(ww.size)  # floor - share = -(share - floor), exactly
+
+    def piece(p):
+        a, b = p
+        share = ww[a:b] / total * remaining
+        floor = np.floor(share)
+        base[a:b] = floor
+        np.subtract(floor, share, out=neg_frac[a:b])
+
+    _pieces(piece, ww.size)
+    rest = remaining - int(base.sum())
+    if rest > 0:
+        idx = np.argpartition(neg_frac, rest - 1)[:rest] if rest < neg_frac.size else np.arange(neg_frac.size)
+        base[idx] += 1
 
 
 def param(default, help_: str, lo=None, hi=None, **extra):

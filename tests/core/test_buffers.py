@@ -119,3 +119,18 @@ def test_crop_is_the_rectangle_of_every_statistic_and_a_copy():
     assert b.crop(-5, -5, 100, 100).shape == b.shape
     with pytest.raises(ValueError, match="empty"):
         b.crop(5, 5, 5, 9)
+
+
+def test_luminance_is_the_rec709_sum_in_float64():
+    """Rec. 709 weights (sum 1: grey keeps its value), float64 for float32
+    input, within a rounding of the BLAS product, and one error for
+    input that is not RGB."""
+    from core.buffers import LUMA, luminance
+    assert luminance(np.array([0.25, 0.25, 0.25])) == pytest.approx(0.25, abs=1e-16)
+    assert np.array_equal(luminance(np.eye(3)), LUMA)
+    rgb = np.random.default_rng(4).random((7, 5, 3)).astype(np.float32)
+    lum = luminance(rgb)
+    assert lum.dtype == np.float64 and lum.shape == (7, 5)
+    assert np.allclose(lum, rgb.astype(np.float64) @ LUMA, rtol=4e-16, atol=0)
+    with pytest.raises(ValueError, match="RGB"):
+        luminance(np.ones((4, 4)))

@@ -217,7 +217,9 @@ def test_var_priority_equals_whole_frame_formula_and_key_follows_contents():
                  np.maximum(np.where(np.isfinite(s2), s2, 0.0), 0.0).mean(-1), np.inf)
     assert _same(var.pixel_variance(b), v)
     m = b.color.mean
-    lum = np.where(np.all(np.isfinite(m), -1), np.where(np.isfinite(m), m, 0.0) @ buffers.LUMA, np.nan)
+    mf = np.where(np.isfinite(m), m, 0.0)
+    L = buffers.LUMA
+    lum = np.where(np.all(np.isfinite(m), -1), mf[..., 0] * L[0] + mf[..., 1] * L[1] + mf[..., 2] * L[2], np.nan)
     assert _same(var.pixel_priority(b, p), var.relative_deviation(v, lum, p))
     key = var._priority_key(b, p)
     assert var._priority_key(b.copy(), p) == key

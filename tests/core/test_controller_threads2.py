@@ -170,3 +170,68 @@ def test_pool_m2_same_bits_for_any_thread_count():
     guides = [(rng.uniform(0, 1, shape + (3,)), rng.uniform(0, 0.01, shape + (3,)), 0.05)]
     for ref, got in _each_thread_count(lambda: V.pool_m2(m2, fac, guides, 2, dof=dof)):
         assert np.array_equal(ref[0], got[0]) and np.array_equal(ref[1], got[1])
+
+
+def _allocate_whole(weights, budget, cap=None):
+    """Largest-remainder rounding written out over the whole array at once
+    (the definition allocate's pieces must reproduce bit for bit)."""
+    w = np.asarray(weights, np.float64)
+    w = np.where(np.isfinite(w) & (w > 0), w, 0.0)
+    budget = int(max(budget, 0))
+    out = np.zeros(w.shape, np.int64)
+    if budget == 0 or w.size == 0:
+        return out
+    cap_arr = None if cap is None else np.broadcast_to(np.asarray(cap, np.int64), w.shape)
+    if cap_arr is not None:
+        budget = min(budget, int(cap_arr.sum()))
+    remaining = budget
+    active = np.ones(w.shape, bool) if cap_arr is None else cap_arr > 0
+    for _ in range(64):
+        if remaining <= 0 or not active.any():
+            break
+        ww = np.where(active, w, 0.0)
+        if ww.sum() <= 0:
+            ww = active.astype(np.float64)
+        share = ww / ww.sum() * remaining
+        base = np.floor(share).astype(np.int64)
+        rest = remaining - int(base.sum())
+        if rest > 0:
+            frac = (share - base).ravel()
+            idx = np.argpartition(-frac, rest - 1)[:rest] if rest < frac.size else np.arange(frac.size)
+            base.ravel()[idx] += 1
+        add = base if cap_arr is None else np.minimum(base, cap_arr - out)
+        out += add
+        remaining -= int(add.sum())
+        if cap_arr is None:
+            break
+        active = out < cap_arr
+    return out
+
+
+@pytest.mark.parametrize("shape", SHAPES + [(40, 50)])
+@pytest.mark.parametrize("kind", ["gamma", "ties", "zeros", "float32"])
+def test_allocate_in_pieces_is_the_whole_array_rounding(shape, kind, monkeypatch):
+    """allocate over pieces of 7 elements on 1-5 threads gives the counts of
+    the whole-array definition, ties among the remainders included (pooled
+    maps are full of them), for hostile weights, all-zero weights, float32
+    input and with a cap."""
+    from core import method
+    monkeypatch.setattr(method, "ALLOCATE_PIECE", 7)
+    monkeypatch.setattr(method, "INLINE_PIXELS", 0)
+    rng = np.random.default_rng(shape[0] * 31 + len(kind))
+    if kind == "ties":
+        w = rng.integers(0, 4, shape).astype(float)
+    elif kind == "zeros":
+        w = np.zeros(shape)
+    else:
+        w = _hostile(rng, rng.gamma(0.5, 3.0, shape))
+    if kind == "float32":
+        w = w.astype(np.float32)
+    n = int(np.prod(shape))
+    for budget in (0, 1, 3 * n + 2, n // 3 + 1):
+        cap = np.full(shape, 4, np.int64)
+        for c in (None, cap):
+            expect = _allocate_whole(w, budget, c)
+            for ref, got in _each_thread_count(lambda: method.allocate(w, budget, c)):
+                assert got.dtype == np.int64 and np.array_equal(expect, got) and np.array_equal(ref, got)
+            assert expect.sum() == (budget if c is None else min(budget, int(cap.sum())))
