@@ -5,6 +5,7 @@ speed-up of one frame over W workers (docs/notes/farm.md).
     .venv/bin/python tools/farm_scale.py merge           # controller merge rate at 4K
     .venv/bin/python tools/farm_scale.py cycles          # Cycles task cost local vs on a worker
     .venv/bin/python tools/farm_scale.py plan --method var --width 3840 --height 2160
+    .venv/bin/python tools/farm_scale.py kernels         # var's adapt kernels at 4K, 1 vs 2 threads
     .venv/bin/python tools/farm_scale.py project         # from the JSON files the others wrote
     .venv/bin/python tools/farm_scale.py project --controller-threads 1 2 8 16
 
@@ -240,6 +241,44 @@ def plan(args):
            "uses_result": bool(m.SAMPLER_USES_RESULT)})
 
 
+# ------------------------------------------------------------------ kernels
+def kernels(args):
+    """var's adapt kernels on the Buffers of a synthetic initial pass, at 1
+    and 2 controller threads alternating, best of ``--repeats``: which of
+    them gain from a second thread (docs/notes/farm.md, part 10)."""
+    from cycles_adaptive.core import maps, method as core_method, var
+    h, w = args.height, args.width
+    ex = SyntheticExecutor(w, h, tuple(methods.get("var").PASSES))
+    run = AdaptiveRun(ex, Options(method="var", spp=16, seed=0))
+    for p in run.steps():  # the initial pass only: stop when the first iteration is planned
+        if p.stage == "plan" and p.tasks_total:
+            break
+    buf, params = run.buffers, var.Params()
+    counts = core_method.allocate(var.pixel_priority(buf, params), 4 * h * w)
+    dof = buf.k - 1.0
+    weights = np.random.default_rng(0).random((h, w))
+    kern = {
+        "pixel_priority": lambda: var.pixel_priority(buf, params),
+        "pixel_variance": lambda: var.pixel_variance(buf),
+        "confidence_pool": lambda: maps.confidence_pool(counts, dof),
+        "allocate": lambda: core_method.allocate(weights, 4 * h * w),
+        "pool_to_blocks": lambda: maps.pool_to_blocks(counts, 16),
+    }
+    best = {k: {1: float("inf"), 2: float("inf")} for k in kern}
+    try:
+        for _ in range(args.repeats):
+            for t in (1, 2):
+                parallel.set_threads(t)
+                for k, fn in kern.items():
+                    t0 = time.perf_counter()
+                    fn()
+                    best[k][t] = min(best[k][t], time.perf_counter() - t0)
+    finally:
+        parallel.set_threads(None)
+    _save("kernels", {"width": w, "height": h, "repeats": args.repeats,
+                      "kernels": {k: {"t1_s": v[1], "t2_s": v[2], "gain": v[1] / v[2]} for k, v in best.items()}})
+
+
 # ------------------------------------------------------------------ project
 def makespan(costs, workers):
     """Greedy list schedule in submission order (Dask hands a free worker the
@@ -408,6 +447,10 @@ def main(argv=None):
     p.add_argument("--spp", type=float, default=16)
     p.add_argument("--width", type=int, default=3840)
     p.add_argument("--height", type=int, default=2160)
+    k = sub.add_parser("kernels")
+    k.add_argument("--width", type=int, default=3840)
+    k.add_argument("--height", type=int, default=2160)
+    k.add_argument("--repeats", type=int, default=3)
     j = sub.add_parser("project")
     j.add_argument("--scene", default="cornell")
     j.add_argument("--plans", nargs="+", default=["plan_var_3840x2160"],
@@ -423,7 +466,8 @@ def main(argv=None):
     j.add_argument("--scene-factors", nargs="+", type=float, default=[1.0, 10.0, 100.0],
                    help="multiples of the measured per-pixel-sample cost (heavier production scenes)")
     args = ap.parse_args(argv)
-    {"overhead": overhead, "merge": merge, "cycles": cycles, "plan": plan, "project": project}[args.cmd](args)
+    {"overhead": overhead, "merge": merge, "cycles": cycles, "plan": plan, "kernels": kernels,
+     "project": project}[args.cmd](args)
 
 
 if __name__ == "__main__":
