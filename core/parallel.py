@@ -16,7 +16,7 @@ So ``threads() == 1`` and ``threads() == 16`` give bit-identical output (the
 tests compare them), and a checkpoint resumed on another machine continues
 exactly.  The thread count is ``$CYCLES_ADAPTIVE_THREADS`` when set (a
 positive integer), else :func:`set_threads`'s value, else the machine's CPU
-count; below ``min_items`` pieces or ``min_work`` elements the work runs
+count up to :data:`DEFAULT_MAX_THREADS`; below ``min_items`` pieces or ``min_work`` elements the work runs
 inline, since small arrays gain nothing from threads.
 """
 from __future__ import annotations
@@ -28,6 +28,13 @@ from concurrent.futures import ThreadPoolExecutor
 
 ENV = "CYCLES_ADAPTIVE_THREADS"
 
+#: the default thread count's ceiling: on a 16-core machine the controller's
+#: work at 4K took longer on 16 threads than on 8 (var's adapt 16.5 s vs
+#: 9.9 s, its merges 7.9 s vs 3.7 s; lp's adapt at 1080p 26.8 s on 16 vs
+#: 17.6 s on 4), as more threads contend for the GIL between numpy calls
+#: (docs/notes/farm.md, part 10); more only when asked for
+DEFAULT_MAX_THREADS = 8
+
 _LOCK = threading.Lock()
 _POOL: ThreadPoolExecutor | None = None
 _POOL_SIZE = 0
@@ -37,8 +44,9 @@ _LOCAL = threading.local()  # marks the pool's own threads (no nested pools)
 
 def threads() -> int:
     """Threads the controller uses: ``$CYCLES_ADAPTIVE_THREADS``, else
-    :func:`set_threads`'s value, else ``os.cpu_count()``; at least 1.  An
-    unparsable or non-positive environment value is ignored."""
+    :func:`set_threads`'s value, else ``os.cpu_count()`` up to
+    :data:`DEFAULT_MAX_THREADS`; at least 1.  An unparsable or non-positive
+    environment value is ignored."""
     env = os.environ.get(ENV, "").strip()
     if env:
         try:
@@ -49,7 +57,7 @@ def threads() -> int:
             return n
     if _SET is not None:
         return _SET
-    return max(1, os.cpu_count() or 1)
+    return max(1, min(os.cpu_count() or 1, DEFAULT_MAX_THREADS))
 
 
 def set_threads(n: int | None) -> None:

@@ -103,6 +103,23 @@ def test_thread_count_settings(monkeypatch):
     assert parallel.threads() >= 1
 
 
+def test_default_thread_count_is_the_cpus_up_to_the_ceiling(monkeypatch):
+    """By default the CPU count, at most DEFAULT_MAX_THREADS (more threads
+    were slower on a 16-core machine); asking for more still gets more."""
+    monkeypatch.delenv(parallel.ENV, raising=False)
+    parallel.set_threads(None)
+    top = parallel.DEFAULT_MAX_THREADS
+    for cpus, want in ((None, 1), (1, 1), (3, 3), (top, top), (2 * top, top), (64, top)):
+        monkeypatch.setattr(parallel.os, "cpu_count", lambda c=cpus: c)
+        assert parallel.threads() == want
+    monkeypatch.setenv(parallel.ENV, str(2 * top))
+    assert parallel.threads() == 2 * top
+    monkeypatch.delenv(parallel.ENV)
+    parallel.set_threads(3 * top)
+    assert parallel.threads() == 3 * top
+    parallel.set_threads(None)
+
+
 def test_band_reduction_is_identical_for_any_thread_count():
     rng = np.random.default_rng(0)
     x = rng.standard_normal((517, 33)) * 1e8
