@@ -166,12 +166,7 @@ def _pieces(fn, n: int) -> None:
     """``fn((a, b))`` over pieces of :data:`ALLOCATE_PIECE` elements of a flat
     array of ``n``, on the controller's threads from :data:`INLINE_PIXELS` on."""
     from . import parallel
-    pieces = parallel.bands(n, ALLOCATE_PIECE)
-    if n < INLINE_PIXELS:
-        for p in pieces:
-            fn(p)
-    else:
-        parallel.map_ordered(fn, pieces)
+    parallel.run_bands(fn, n, ALLOCATE_PIECE, min_work=INLINE_PIXELS)
 
 
 def _largest_remainder(ww: np.ndarray, remaining: int, base: np.ndarray, active=None) -> None:

@@ -16,8 +16,9 @@ So ``threads() == 1`` and ``threads() == 16`` give bit-identical output (the
 tests compare them), and a checkpoint resumed on another machine continues
 exactly.  The thread count is ``$CYCLES_ADAPTIVE_THREADS`` when set (a
 positive integer), else :func:`set_threads`'s value, else the machine's CPU
-count up to :data:`DEFAULT_MAX_THREADS`; below ``min_items`` pieces or ``min_work`` elements the work runs
-inline, since small arrays gain nothing from threads.
+count up to :data:`DEFAULT_MAX_THREADS`; below ``min_items`` pieces or
+``min_work`` elements the work runs inline, since small arrays gain nothing
+from threads.
 """
 from __future__ import annotations
 
