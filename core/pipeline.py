@@ -9,7 +9,10 @@ and tests may use any object with the same two members:
 ``size``                       (H, W) of the image domain in pixels
 ``render(task) -> (color, features)``
                                color (h, w, 4) or (h, w, 3) float mean of the
-                               task's samples, features a dict pass -> (h, w, C)
+                               task's samples, features a dict pass -> (h, w, C);
+                               arrays the executor does not change afterwards
+                               (a large task merges on a background thread
+                               while the next renders)
 
 and optionally ``render_many(tasks) -> iterator of (color, features)``, which
 may render an iteration's tasks in parallel (e.g. on farm workers) but yields
@@ -56,7 +59,9 @@ from .method import Method, check_ranges, consistency_guard, param, params_from_
 TOP_UP = 3        # planning rounds the last iteration may add to spend what rounding left
 MAX_BEYOND_MAP = 0.1  # most samples an iteration's plan may add beyond the map (share of its samples)
 MAX_EXACT_TASKS = 64  # most renders a pixel-exact fallback plan may take
-MERGE_WORK_PIXELS = 1 << 18  # a task this large (512x512) merges off the UI's main thread
+#: a task this large (256x256) merges on a background thread while the next
+#: renders (Cycles releases the GIL while it renders; numpy's merge does too)
+MERGE_WORK_PIXELS = 1 << 16
 
 
 @dataclass
@@ -297,6 +302,8 @@ class AdaptiveRun:
         self.target_met = False             # Options.target_error reached
         self.estimates: list = []           # (spp, estimated relMSE) at each target check
         self._result = None                 # (samples, MethodResult) of the last target check
+        self._pending: Work | None = None   # the merge running in the background (_merge_steps)
+        self._pending_samples = 0           # samples_rendered once it has landed
         # a time limit (core/timeplan.py): the renders' fitted cost, the final
         # reconstruction's and a round's measured or estimated seconds, and
         # what the caller sets aside for its own output (reserve_seconds)
@@ -333,7 +340,24 @@ class AdaptiveRun:
         return self.budget - self.samples_rendered
 
     def _fraction(self) -> float:
-        return min(1.0, self.samples_rendered / max(self.budget, 1))
+        # while a merge runs the buffers are half updated: count it as landed
+        done = self._pending_samples if self._pending is not None else self.samples_rendered
+        return min(1.0, done / max(self.budget, 1))
+
+    @property
+    def pending_merge(self) -> "Work | None":
+        """The merge still running on a background thread (a :class:`Work`
+        marked ``mutates``), or None.  The loop waits for it before it reads
+        the buffers itself; a consumer that stopped the loop (Esc, Ctrl-C, an
+        error) waits through :meth:`settle` or this Work's ``run`` before it
+        reads them."""
+        return self._pending
+
+    def settle(self) -> None:
+        """Wait for :attr:`pending_merge`, if any; its exception is raised here."""
+        work, self._pending = self._pending, None
+        if work is not None:
+            work.result()
 
     def elapsed(self) -> float:
         """Seconds since the run's clock started (``started``)."""
@@ -414,6 +438,7 @@ class AdaptiveRun:
         an estimate from crops of fewer samples is measured again."""
         if not self.timed:
             return
+        yield from self._settle_steps()  # the probe and the crops read the buffers
         if self.reserve_probe is not None:
             probe, buf = self.reserve_probe, self.buffers
             self.reserve_probe = None
@@ -646,6 +671,7 @@ class AdaptiveRun:
                            s + 1, len(tasks))
             if s == 0 and len(tasks) > 1:  # the subsets that follow fit what the output needs
                 yield from self._measure_reserves()
+        yield from self._settle_steps()
         self.next_index[:] = last.offset + last.samples
         # the sequence's stratification, measured once on the equal subsets (core/variance.py)
         work = Work(lambda: meter.exponent(self.buffers), "initial pass: measuring the noise's convergence")
@@ -809,21 +835,53 @@ class AdaptiveRun:
         return color, feats
 
     def _merge_steps(self, task, color, feats, also=None):
-        """Merge one rendered task (then ``also()``); a task of at least
-        ``MERGE_WORK_PIXELS`` merges as a :class:`Work` marked ``mutates``
-        (seconds at 1920x1080: off the UI's main thread; a consumer that
-        stops waiting must let it finish before reading the buffers)."""
+        """Merge one rendered task (then ``also()``), after the merge before
+        it has landed, so merges keep their order and the buffers their bits.
+        A task of at least ``MERGE_WORK_PIXELS`` merges on a background thread
+        (:attr:`pending_merge`, a :class:`Work` marked ``mutates``) while the
+        loop goes on to render the next: Cycles renders with the GIL released,
+        so the merge's seconds (~0.07 s per 0.6-megapixel subset) hide behind
+        the render instead of adding to it.  The loop waits for it
+        (:meth:`_settle_steps`) before anything of its own reads the buffers."""
         def merge():
             self._merge(task, color, feats)
             if also is not None:
                 also()
+        label = f"merging {task.x1 - task.x0}x{task.y1 - task.y0} px, {task.samples} spp"
+        try:
+            yield from self._settle_steps()
+        except BaseException:
+            before = self._pending
+            if before is None:  # the merge before failed: its error, as it is
+                raise
+            # stopped (Esc, Ctrl-C) while waiting for the merge before: this
+            # task is rendered, so it lands too, after that one, without
+            # holding up the stop (pending_merge is then this Work)
+
+            def after():
+                before.result()
+                merge()
+            self._start_merge(Work(after, label, mutates=True), self._pending_samples + task.pixels * task.samples)
+            raise
         if (task.x1 - task.x0) * (task.y1 - task.y0) < MERGE_WORK_PIXELS:
             merge()
             return
-        work = Work(merge, f"merging {task.x1 - task.x0}x{task.y1 - task.y0} px, {task.samples} spp",
-                    mutates=True)
-        yield Progress("merge", self.iteration, self._fraction(), work.label, work=work)
-        work.result()
+        # the buffers are whole here: what they will hold once it has landed
+        self._start_merge(Work(merge, label, mutates=True), self.samples_rendered + task.pixels * task.samples)
+
+    def _start_merge(self, work, landed: int) -> None:
+        self._pending, self._pending_samples = work, landed
+        threading.Thread(target=work.run, name="cycles-adaptive-merge", daemon=True).start()
+
+    def _settle_steps(self):
+        """:meth:`settle` as steps: a merge still running is yielded as its
+        Work first, so a UI waits for it off its main thread."""
+        work = self._pending
+        if work is None:
+            return
+        if not work.done:
+            yield Progress("merge", self.iteration, self._fraction(), work.label, work=work)
+        self.settle()
 
     def _count_render(self, seconds: float, task) -> None:
         self.cost.add(task.pixels * task.samples, seconds)
@@ -841,9 +899,14 @@ class AdaptiveRun:
 
     def _render_tasks(self, tasks):
         """Render and merge ``tasks`` in order (through the executor's
-        ``render_many`` when it has one); yields each task once merged.
+        ``render_many`` when it has one); yields each task once its merge has
+        started (:meth:`_merge_steps`), and returns once the last has landed.
         Stops before a task once ``max_seconds`` is spent (the tasks merged
         so far are kept)."""
+        yield from self._render_and_merge(tasks)
+        yield from self._settle_steps()
+
+    def _render_and_merge(self, tasks):
         many = getattr(self.executor, "render_many", None)  # optional member, see module notes
         if many is None:
             for task in tasks:
@@ -956,6 +1019,7 @@ class AdaptiveRun:
     def reconstruct(self, reconstructor=None):
         """Final reconstruction (the method's, or ``reconstructor(run)``),
         through the consistency guard of ``Options.guard_z``."""
+        self.settle()
         t0 = time.perf_counter()
         if reconstructor is None and self._result is not None and self._result[0] == self.samples_rendered:
             result = self._result[1]  # the target check's reconstruction of these very samples
@@ -976,6 +1040,7 @@ class AdaptiveRun:
         takes seconds at 1920x1080: off the UI's main thread)."""
         if not self.checkpoint_path or self.buffers is None:
             return
+        yield from self._settle_steps()
         work = Work(self._save_checkpoint, f"iteration {self.iteration}: writing the checkpoint")
         yield Progress("saving", self.iteration, self._fraction(), work.label, work=work)
         work.result()

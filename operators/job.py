@@ -636,6 +636,7 @@ class RenderJob:
         run = self.run
         if run is None or run.buffers is None:
             raise JobError("nothing was rendered")
+        run.settle()  # a merge the loop left running when it stopped (Esc, Ctrl-C, an error)
         result, reconstructed = self._result(reconstruct)
         self.result = result
         image = np.where(np.isfinite(result.image), result.image, 0.0)

@@ -170,6 +170,8 @@ class Stepper:
         if run is None or getattr(run, "buffers", None) is None:
             self.finished = True
             return None
+        # the loop's background merge (the last of any still to land), if any
+        settle = getattr(run, "pending_merge", None) or settle
         self.writer = self._write_steps(partial=True, reconstruct=False, settle=settle)
         self._advance_writer()
         return self.summary
