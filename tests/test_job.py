@@ -330,3 +330,27 @@ def test_an_image_only_exr_keeps_the_image_passes_and_denoise_refuses_it(tmp_pat
     from cycles_adaptive.core.storage import StorageError
     with pytest.raises(StorageError, match="image-only output"):
         job_mod.denoise_output(str(tmp_path / "image.exr"), "lp")
+
+
+@pytest.mark.parametrize("method", ["uniform", "var"])
+def test_merges_behind_real_renders_give_the_file_of_inline_merges(tmp_path, monkeypatch, method):
+    """Cycles renders the next task while the last one merges on a background
+    thread (every merge there, as from 256x256 pixels): the EXR equals that of
+    inline merges, pass for pass, bit for bit."""
+    from cycles_adaptive.core import pipeline
+    results = []
+    for name, threshold in (("inline.exr", 1 << 40), ("background.exr", 1)):
+        monkeypatch.setattr(pipeline, "MERGE_WORK_PIXELS", threshold)
+        scene = build_scene(24, 16)
+        job = RenderJob(scene, bpy.context.view_layer,
+                        Options(method=method, spp=8, initial_spp=2, subsets=2, frame=scene.frame_current,
+                                task_cost=16, min_task_size=2), str(tmp_path / name))
+        for _ in job.steps():
+            pass
+        job.finish()
+        assert job.run.pending_merge is None
+        results.append(imageio.read_layers(job.out)[0])
+    a, b = results
+    assert set(a) == set(b)
+    for p in a:
+        assert np.array_equal(a[p], b[p]), p
