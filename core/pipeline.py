@@ -863,7 +863,7 @@ class AdaptiveRun:
                 merge()
             self._start_merge(Work(after, label, mutates=True), self._pending_samples + task.pixels * task.samples)
             raise
-        if (task.x1 - task.x0) * (task.y1 - task.y0) < MERGE_WORK_PIXELS:
+        if task.pixels < MERGE_WORK_PIXELS:
             merge()
             return
         # the buffers are whole here: what they will hold once it has landed

@@ -463,7 +463,7 @@ def test_esc_during_a_merge_writes_the_partial_result_after_the_merge_ends(tmp_p
     from cycles_adaptive.core.pipeline import Options
     from cycles_adaptive.operators import job as job_mod
 
-    monkeypatch.setattr(pipeline, "MERGE_WORK_PIXELS", 1)  # every merge is a Work
+    monkeypatch.setattr(pipeline, "MERGE_WORK_PIXELS", 1)  # every merge a background Work
     gate, events = threading.Event(), []
     real_merge = pipeline.merge_render
 
