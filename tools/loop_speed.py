@@ -4,15 +4,18 @@ Both render the same scene at the same spp in one process, alternating, so the
 machine's load falls on both alike.  Plain Cycles is the benchmark's peer
 (bench/peers.py: one full-frame render with the scene's own pattern, EXR
 written and read back); ours is ``AdaptiveRun`` with ``uniform`` and the final
-reconstruction, as the benchmark runs it.  Every render is split into Cycles'
+reconstruction, as the benchmark and a job run it (the scene's pattern with
+Cycles' count held at the budget, ``core.pipeline.hold_samples``).  Every render is split into Cycles'
 own time (``bpy.ops.render.render`` with the EXR write) and reading the EXR
 back, so the note can say where the loop's extra time goes:
 
     .venv/bin/python tools/loop_speed.py [--scenes cornell,...] [--percent 100,600] [--spp 16]
         [--repeats 5] [--seed 0] [--subsets N] [--out F.json]
 
-Prints, per scene and size, the medians over repeats and the speed ratio
-plain / ours (>= 1 would be as fast as plain Cycles).
+Prints, per scene and size, the medians over repeats, the speed ratio
+plain / ours (>= 1 would be as fast as plain Cycles) and how far our image is
+from plain Cycles' (largest absolute difference, relMSE taking plain's as the
+reference: 0 when the loop renders the same image).
 """
 from __future__ import annotations
 
@@ -33,7 +36,8 @@ import bpy  # noqa: E402
 from cycles_adaptive.addon import executor as ex  # noqa: E402
 from cycles_adaptive.bench.peers import PlainCycles  # noqa: E402
 from cycles_adaptive.core import io as imageio  # noqa: E402
-from cycles_adaptive.core.pipeline import AdaptiveRun, Options  # noqa: E402
+from cycles_adaptive.core import methods  # noqa: E402
+from cycles_adaptive.core.pipeline import AdaptiveRun, Options, hold_samples  # noqa: E402
 
 SCENES = "cornell,dof,soft_shadows,glossy,motion_blur,animated"
 
@@ -77,24 +81,36 @@ def plain(scene, vl, spp, seed, clock) -> dict:
     clock.reset()
     t0 = time.perf_counter()
     with PlainCycles(scene, vl, seed, scene.cycles.sampling_pattern) as pc:
-        pc.render(spp)
-    return {"wall": time.perf_counter() - t0, **clock.split()}
+        rgb = pc.render(spp)["rgb"]
+    return {"wall": time.perf_counter() - t0, **clock.split(), "image": rgb}
 
 
 def ours(scene, vl, spp, seed, subsets, clock) -> dict:
     clock.reset()
     t0 = time.perf_counter()
-    with ex.CyclesExecutor(scene, vl, (), seed=seed) as exe:
-        opts = Options(method="uniform", spp=float(spp), seed=seed, frame=scene.frame_current,
-                       **({"subsets": subsets} if subsets else {}))
+    opts = Options(method="uniform", spp=float(spp), seed=seed, frame=scene.frame_current,
+                   **({"subsets": subsets} if subsets else {}))
+    exe = ex.CyclesExecutor(scene, vl, (), seed=seed)
+    hold_samples(exe, opts, methods.method_for("uniform", opts.params))  # the scene's pattern, as a job does
+    with exe:
         run = AdaptiveRun(exe, opts)
         for _ in run.steps():
             pass
-        run.reconstruct()
+        image = run.reconstruct().image
     wall = time.perf_counter() - t0
     tm = run.timing
     return {"wall": wall, **clock.split(), "loop_render": tm.render, "reconstruct": tm.reconstruct,
-            "rest": wall - tm.render - tm.reconstruct}
+            "rest": wall - tm.render - tm.reconstruct, "image": image}
+
+
+def image_gap(ours_rgb, plain_rgb) -> dict:
+    """How far our image is from plain Cycles' at equal spp: the largest
+    absolute difference and the relMSE of ours taking plain's as the
+    reference (0 when the loop renders the same image)."""
+    import numpy as np
+    a, b = np.asarray(ours_rgb, np.float64)[..., :3], np.asarray(plain_rgb, np.float64)[..., :3]
+    return {"max_abs_diff": float(np.max(np.abs(a - b))),
+            "relmse_to_plain": float(np.mean((a - b) ** 2 / (b * b + 0.01)))}
 
 
 def main(argv=None):
@@ -118,15 +134,19 @@ def main(argv=None):
             vl = scene.view_layers[0]
             plain(scene, vl, 1, args.seed, clock)  # warm-up: kernels, BVH, caches
             p, o = [], []
+            gaps = []
             for _ in range(args.repeats):
                 p.append(plain(scene, vl, args.spp, args.seed, clock))
                 o.append(ours(scene, vl, args.spp, args.seed, args.subsets, clock))
+                gaps.append(image_gap(o[-1].pop("image"), p[-1].pop("image")))
             med = {side: {k: statistics.median(r[k] for r in runs) for k in runs[0]}
                    for side, runs in (("plain", p), ("ours", o))}
             w, h = ex.full_size(scene)
             row = {"scene": name, "width": w, "height": h, "spp": args.spp, "repeats": args.repeats,
                    "ratio": med["plain"]["wall"] / med["ours"]["wall"],
-                   "ratios": [a["wall"] / b["wall"] for a, b in zip(p, o)], **med}
+                   "ratios": [a["wall"] / b["wall"] for a, b in zip(p, o)], "seed": args.seed,
+                   "max_abs_diff": max(g["max_abs_diff"] for g in gaps),
+                   "relmse_to_plain": max(g["relmse_to_plain"] for g in gaps), **med}
             rows.append(row)
             print(f"{name:>12} {w}x{h} {args.spp} spp: plain {med['plain']['wall']:.3f} s "
                   f"(cycles {med['plain']['cycles']:.3f}, read {med['plain']['read']:.3f}) | ours "
@@ -134,7 +154,8 @@ def main(argv=None):
                   f"{med['ours']['cycles']:.3f}, read {med['ours']['read']:.3f}; reconstruct "
                   f"{med['ours']['reconstruct']:.3f}, rest {med['ours']['rest']:.3f}) | "
                   f"speed {row['ratio']:.3f}x (median of pairs {statistics.median(row['ratios']):.3f}x, "
-                  f"Cycles' share {med['plain']['cycles'] / med['ours']['cycles']:.3f}x)", flush=True)
+                  f"Cycles' share {med['plain']['cycles'] / med['ours']['cycles']:.3f}x); image: max |ours - plain| "
+                  f"{row['max_abs_diff']:.2e}, relMSE to plain {row['relmse_to_plain']:.2e}", flush=True)
     if args.out:
         with open(args.out, "w") as f:
             json.dump(rows, f, indent=1)
