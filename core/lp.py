@@ -130,7 +130,7 @@ Measurements and design notes: docs/notes/lp.md
 from __future__ import annotations
 
 import threading
-from dataclasses import dataclass
+from dataclasses import dataclass, fields
 from functools import lru_cache
 
 import numpy as np
@@ -138,6 +138,7 @@ import numpy as np
 from . import parallel
 from .buffers import Buffers
 from .errormap import retained_noise, without_kept_noise
+from .filters import box_sum
 from .lp_solve import Design, ring_fits, ring_layout
 from .method import MethodResult, allocate, gain_exponent, param, params_from_dict
 
@@ -326,10 +327,11 @@ class _Frame:
     filter, for the TSVD threshold).
     """
 
-    def __init__(self, color, color_var, features, feature_var, n, radius, subtract):
+    def __init__(self, color, color_var, features, feature_var, n, radius, subtract, origin=0):
         h, w = color.shape[:2]
         r = self.pad = int(radius)
         self.h, self.w = h, w
+        self.origin = int(origin)      # the frame's row 0 in the whole image (:func:`fit_band`)
         self.hp, self.wp = h + 2 * r, w + 2 * r
         names = [g for g in _GROUPS if g in features]
         cols, groups = 2, []
@@ -431,26 +433,33 @@ def _median3(planes: np.ndarray, out: np.ndarray, band: int = 64) -> np.ndarray:
 
 def _box_sum(plane: np.ndarray, r: int, out: np.ndarray | None = None) -> np.ndarray:
     """Sum over the (2r+1)^2 window around every pixel of a plane zero-padded
-    by r (summed-area table, written into ``out`` when given); >= 0 for
+    by r (written into ``out`` when given; 0 in the padding); >= 0 for
     non-negative input.  Feeds the TSVD threshold's ``||E||_F`` (Sec. 7).
 
-    Not :func:`core.filters.box_sum`: that one never subtracts partial sums
-    and so rounds differently, which could move a TSVD rank at a threshold.
+    By :func:`core.filters.box_sum` (binary doubling, no subtraction of
+    partial sums): each sum depends on its window alone, also in its
+    rounding, so a band of rows packed on its own (:func:`fit_band`) gives
+    the bits of the whole frame; a summed-area table's rounding depends on
+    every row above.
     """
     hp, wp = plane.shape
-    sat = np.zeros((hp + 1, wp + 1))
-    body = sat[1:, 1:]
-    np.cumsum(plane, axis=0, out=body)
-    np.cumsum(body, axis=1, out=body)
     out = np.zeros((hp, wp)) if out is None else out
     out[...] = 0.0
-    k = 2 * r + 1
-    if hp >= k and wp >= k:
-        o = out[r:hp - r, r:wp - r]
-        np.subtract(sat[k:, k:], sat[:hp + 1 - k, k:], out=o)
-        o -= sat[k:, :wp + 1 - k]
-        o += sat[:hp + 1 - k, :wp + 1 - k]
+    if hp > 2 * r and wp > 2 * r:
+        out[r:hp - r, r:wp - r] = box_sum(plane, r)[r:hp - r, r:wp - r]
     return np.maximum(out, 0.0, out=out)
+
+
+#: pixels a chunk's band of rows may span (its scatter and the bincount
+#: temporaries of ``_Accumulator.add``, 8 bytes per band pixel)
+CHUNK_PIXELS = 1 << 17
+
+
+def chunk_rows(width: int, radius: int) -> int:
+    """Rows of the bands that chunks of centres never cross
+    (:func:`_place_centres`): the scattered band of a chunk, its rows plus the
+    window radius either side, stays under ``CHUNK_PIXELS`` pixels."""
+    return max(1, CHUNK_PIXELS // (int(width) + 2 * int(radius)) - 2 * int(radius))
 
 
 def auto_chunk(pixels: int) -> int:
@@ -848,12 +857,12 @@ def fit(color: np.ndarray, color_var: np.ndarray, features: dict, feature_var: d
     return _fit_frame(_pack(color, color_var, features, feature_var, n, params), params, keep_models)
 
 
-def _pack(color, color_var, features, feature_var, n, params: Params) -> _Frame:
+def _pack(color, color_var, features, feature_var, n, params: Params, origin: int = 0) -> _Frame:
     color = np.asarray(color, np.float64)
     if color.ndim != 3 or color.shape[-1] != 3:
         raise ValueError(f"color must be (H, W, 3), got {color.shape}")
     return _Frame(color, color_var, features or {}, feature_var, n, int(params.radius),
-                  params.variance_corrected)
+                  params.variance_corrected, origin)
 
 
 def _fit_buffers(buf: Buffers, params: Params) -> LPFit:
@@ -862,11 +871,16 @@ def _fit_buffers(buf: Buffers, params: Params) -> LPFit:
     return _fit_frame(_pack(*_inputs(buf), buf.n, params), params)
 
 
+def _chunk(params: Params, pixels: int) -> int:
+    """Centres per batch for a frame of ``pixels`` (``Params.chunk``, 0 = :func:`auto_chunk`)."""
+    chunk = int(params.chunk) if int(params.chunk) > 0 else auto_chunk(pixels)
+    return max(1, min(chunk, int(pixels)))
+
+
 def _fit_frame(frame: _Frame, params: Params, keep_models: bool = False) -> LPFit:
     """Sec. 4-5 on a packed frame (see :func:`fit`); releases the frame's planes."""
     h, w = frame.h, frame.w
-    chunk = int(params.chunk) if int(params.chunk) > 0 else auto_chunk(h * w)
-    chunk = max(1, min(chunk, h * w))
+    chunk = _chunk(params, h * w)
     acc = _Accumulator(frame)
     placed, passes = _place_centres(frame, acc, params, chunk, keep_models)
     offsets = _mean_offsets(frame, acc, placed, int(params.radius), chunk)
@@ -924,12 +938,12 @@ def _place_centres(frame: _Frame, acc: _Accumulator, params: Params, chunk: int,
     inline = h * w < THREAD_MIN_PIXELS
     covered = np.zeros((h, w), bool)
     is_centre = np.zeros((h, w), bool)
-    rows, cols = np.arange(h)[:, None], np.arange(w)[None, :]
-    # rows per chunk: keep the scattered band (and the bincount temporaries of
-    # ``_Accumulator.add``, 8 bytes per band pixel) under ~2^17 pixels
-    band_rows = max(1, (1 << 17) // frame.wp - 2 * radius)
+    # rows and grids in the whole image's coordinates (a band of rows, :func:`fit_band`,
+    # places the centres of the whole frame there)
+    rows, cols = np.arange(h)[:, None] + frame.origin, np.arange(w)[None, :]
+    band_rows = chunk_rows(w, radius)
     kept = ("r_opt", "rank", "xi_opt", "grad", "b0", "lower") + (("beta", "P", "transform") if keep_models else ())
-    placed = {key: [] for key in ("centers",) + kept}
+    placed = {key: [] for key in ("centers", "pass") + kept}
 
     def compute(piece):
         # one chunk on a pool thread: its own workspace, its sums over its band
@@ -952,18 +966,149 @@ def _place_centres(frame: _Frame, acc: _Accumulator, params: Params, chunk: int,
             continue
         passes += 1
         is_centre[cy, cx] = True
-        # the chunks depend on the shape and parameters only, never on the thread count
+        # the chunks depend on the shape and parameters only, never on the thread
+        # count: the centres of one band of ``band_rows`` rows (bands counted from
+        # the image's row 0), ``chunk`` at a time from the band's first centre
         pieces, s0 = [], 0
         while s0 < len(cy):
-            s1 = min(s0 + chunk, int(np.searchsorted(cy, cy[s0] + band_rows)))
+            band_end = ((int(cy[s0]) + frame.origin) // band_rows + 1) * band_rows - frame.origin
+            s1 = min(s0 + chunk, int(np.searchsorted(cy, band_end)))
             pieces.append((cy[s0:s1], cx[s0:s1]))
             s0 = s1
         for centres, values in parallel.ordered_reduce(compute, reduce, pieces, inline):
             placed["centers"].append(centres)
+            placed["pass"].append(passes - 1)
             for key, value in zip(kept, values):
                 placed[key].append(value)
         covered = acc.predicted()
     return placed, passes
+
+
+# ------------------------------------------------------------- bands of rows
+def band_halo(width: int, params: Params) -> int:
+    """Rows above and below a band that :func:`fit_band` must see for the
+    band's own rows to come out as the whole frame's, bit for bit.
+
+    Each quantity depends on inputs within a known number of rows: a model on
+    its window (R rows) and on the other centres of its chunk (their rank
+    groups share arrays), so on its chunk's whole band of ``b`` =
+    :func:`chunk_rows` rows; a centre of pass p > 1 exists where the models
+    of passes < p leave its pixel uncovered (Sec. 5.1), so on every chunk
+    within R rows of it.  Per pass that is at most ``L = R + b`` more rows
+    (the 3x3 median of the typical variance included); after the P passes
+    of :func:`_granularities`, the mean offsets (a model's final share reads
+    the blend weights of every model over its window: two more levels) and
+    the blend itself (one more) give ``(P + 3) L``.  Ours: the paper fits
+    whole frames."""
+    r = int(params.radius)
+    return (len(_granularities(params.granularity, r)) + 3) * (r + chunk_rows(width, r))
+
+
+def fit_band(job: dict) -> dict:
+    """LP (:func:`fit`) of one band of rows of a frame, for a map spread over
+    farm workers (:func:`fit_bands`): a pure function of ``job``, which holds
+    the inputs of rows ``t0 .. t1`` of the frame (``color``, ``color_var``,
+    ``features``, ``feature_var``, ``n``: the arrays :func:`fit` takes, cut
+    to those rows), ``t0``, the band's own rows ``c0 .. c1`` (image rows,
+    ``t0 + band_halo <= c0`` unless ``t0`` is 0, and the same below), the
+    whole frame's ``chunk`` (:func:`_chunk`) and ``params`` (a dict).
+
+    The grids of Sec. 5.1 and the chunk bands are counted from the image's
+    row 0 (``origin``), so the band's own rows get the whole frame's values
+    (:func:`band_halo`).  Returns those rows' ``image``, ``err`` and ``dxi``
+    (raw, see :meth:`_Accumulator.averages`), ``radius``, ``tops``, and the
+    centres placed in them, ``centers`` (image coordinates) with ``pass``,
+    ``r_opt``, ``rank``, ``xi_opt`` (creation order)."""
+    params = params_from_dict(Params, job["params"])
+    t0, c0, c1 = int(job["t0"]), int(job["c0"]), int(job["c1"])
+    frame = _pack(job["color"], job["color_var"], job["features"], job["feature_var"], job["n"], params,
+                  origin=t0)
+    acc = _Accumulator(frame)
+    placed, _ = _place_centres(frame, acc, params, int(job["chunk"]), False)
+    _mean_offsets(frame, acc, placed, int(params.radius), int(job["chunk"]))
+    image, err, dxi, radius, tops = acc.averages(core=(c0 - t0, c1 - t0))
+    frame.release()
+    out = {"image": image, "err": err, "dxi": dxi, "radius": radius, "tops": tops}
+    if placed["centers"]:
+        centers = np.concatenate(placed["centers"])
+        mine = (centers[:, 0] >= c0 - t0) & (centers[:, 0] < c1 - t0)
+        out["centers"] = centers[mine] + np.array([t0, 0])
+        out["pass"] = np.concatenate([np.full(len(c), i, np.int64)
+                                      for c, i in zip(placed["centers"], placed["pass"])])[mine]
+        for key in ("r_opt", "rank", "xi_opt"):
+            out[key] = np.concatenate(placed[key])[mine]
+    else:
+        out["centers"] = np.zeros((0, 2), np.int64)
+        out["pass"] = np.zeros(0, np.int64)
+        out["r_opt"], out["rank"], out["xi_opt"] = (np.zeros((0, 3), np.int64), np.zeros(0, np.int64),
+                                                   np.zeros((0, 3)))
+    return out
+
+
+def band_jobs(color, color_var, features, feature_var, n, params: Params, parts: int) -> list:
+    """The jobs of :func:`fit_band` that cover a frame in ``parts`` bands of
+    about equal height (fewer where the frame is short): each with its
+    :func:`band_halo` rows either side, inputs cut (and copied) to them."""
+    color = np.asarray(color)
+    h, w = color.shape[:2]
+    halo = band_halo(w, params)
+    parts = max(1, min(int(parts), h))
+    edges = [(h * i) // parts for i in range(parts + 1)]
+    chunk = _chunk(params, h * w)
+    plain = {f.name: getattr(params, f.name) for f in fields(Params)}
+
+    def rows(a, t0, t1):
+        if a is None:
+            return None
+        a = np.asarray(a)
+        return np.ascontiguousarray(a[t0:t1]) if a.ndim >= 2 and a.shape[0] == h else a
+
+    jobs = []
+    for c0, c1 in zip(edges[:-1], edges[1:]):
+        if c1 <= c0:
+            continue
+        t0, t1 = max(0, c0 - halo), min(h, c1 + halo)
+        jobs.append({
+            "t0": t0, "c0": c0, "c1": c1, "chunk": chunk, "params": plain,
+            "color": rows(color, t0, t1), "color_var": rows(color_var, t0, t1),
+            "features": {k: rows(v, t0, t1) for k, v in (features or {}).items()},
+            "feature_var": None if feature_var is None else {k: rows(v, t0, t1) for k, v in feature_var.items()},
+            "n": rows(n, t0, t1),
+        })
+    return jobs
+
+
+def join_bands(outs: list, shape: tuple) -> LPFit:
+    """The :class:`LPFit` of a frame from its bands' :func:`fit_band` results
+    (in band order): rows stacked, errors finished with the frame's largest
+    finite values, centres in the whole frame's creation order (by pass, then
+    row by row)."""
+    h, w = shape
+    tops = [max((o["tops"][j] for o in outs if o["tops"][j] is not None), default=0.0) for j in range(2)]
+    image = np.concatenate([o["image"] for o in outs])
+    radius = np.concatenate([o["radius"] for o in outs])
+    error, dxi = np.empty((h, w)), np.empty((h, w, 3))
+    y = 0
+    for o in outs:
+        rows = o["image"].shape[0]
+        error[y:y + rows], dxi[y:y + rows] = _finish_errors(o["err"], o["dxi"], tops)
+        y += rows
+    passes = np.concatenate([o["pass"] for o in outs])
+    order = np.argsort(passes, kind="stable")
+    pick = {key: np.concatenate([o[key] for o in outs])[order] for key in ("centers", "r_opt", "rank", "xi_opt")}
+    return LPFit(image=image, error=error, delta_error=dxi, radius=radius, centers=pick["centers"],
+                 center_radius=pick["r_opt"], center_rank=pick["rank"], center_error=pick["xi_opt"],
+                 passes=int(len(np.unique(passes))))
+
+
+def fit_bands(color, color_var, features, feature_var, n, params: Params, parts: int, run=None) -> LPFit:
+    """:func:`fit` computed as ``parts`` bands of rows (:func:`fit_band`),
+    each a pure function of its inputs, so a farm's workers can compute them;
+    ``run(jobs) -> results in order`` (None: one after the other here).  The
+    same bits as :func:`fit` (without ``keep_models``) for any ``parts``."""
+    jobs = band_jobs(color, color_var, features, feature_var, n, params, parts)
+    outs = list(map(fit_band, jobs)) if run is None else list(run(jobs))
+    return join_bands(outs, np.asarray(color).shape[:2])
 
 
 #: the blend's mean correction of a model (:func:`_mean_offsets`) is at most this
@@ -1262,7 +1407,7 @@ class _Accumulator:
         parallel.run_bands(band, f.h, _BAND_ROWS, THREAD_MIN_PIXELS, f.w)
         return out
 
-    def averages(self):
+    def averages(self, core: tuple | None = None):
         """The weighted averages over the models covering each pixel (Sec. 5.1,
         :func:`blend_weights`), the sums released once read: ``image`` (H, W, 3)
         (non-finite -> 0; with the pixels' own values where the models miss
@@ -1271,44 +1416,68 @@ class _Accumulator:
         (H, W) the plain mean r_opt over the covering models and channels.
         Per pixel, in bands of rows on :mod:`core.parallel`'s pool; the
         largest finite errors (:func:`_finite_errors`) are maxima over the
-        bands, exact in any order."""
+        bands, exact in any order.
+
+        With ``core = (y0, y1)`` (a band's own rows, :func:`fit_band`): only
+        those rows, and the errors unfinished: ``(image, err, dxi, radius,
+        tops)`` with ``err``, ``dxi`` (3, y1 - y0, W) the raw blended ratios
+        (non-finite kept) and ``tops`` their largest finite values (None where
+        there is none), for :func:`_finish_errors` over the whole frame."""
         f = self.frame
-        h, w = f.h, f.w
+        c0, c1 = (0, f.h) if core is None else (int(core[0]), int(core[1]))
+        h, w = c1 - c0, f.w
         image = np.empty((h, w, 3))
-        error = np.empty((h, w))
-        dxi = np.empty((h, w, 3))
         radius = np.empty((h, w), np.result_type(self.rad.dtype, self.cnt.dtype))
+        raw = core is not None
+        if raw:
+            err_out, dx_out = np.empty((3, h, w)), np.empty((3, h, w))
+        else:
+            error, dxi = np.empty((h, w)), np.empty((h, w, 3))
 
         def ratios(y0, y1):
-            wsum = self.crop(self.wsum)[:, y0:y1]
+            wsum = self.crop(self.wsum)[:, c0 + y0:c0 + y1]
             safe = np.where(wsum > 0, wsum, 1.0)
-            return self.crop(self.err)[:, y0:y1] / safe, self.crop(self.dxi)[:, y0:y1] / safe, safe
+            return (self.crop(self.err)[:, c0 + y0:c0 + y1] / safe,
+                    self.crop(self.dxi)[:, c0 + y0:c0 + y1] / safe, safe)
 
         def tops(rows):
             # the image, the radii and each band's largest finite errors
             y0, y1 = rows
             err, dx, safe = ratios(y0, y1)
-            img = self.crop(self.pred)[:, y0:y1] / safe
+            g0, g1 = c0 + y0, c0 + y1
+            img = self.crop(self.pred)[:, g0:g1] / safe
             img[~np.isfinite(img)] = 0.0
             planes = self.crop(f.planes)
-            img = _own_pixel(img, planes[f.c_y:f.c_y + 3, y0:y1], planes[f.c_v:f.c_v + 3, y0:y1],
-                             self.crop(f.var_typical)[:, y0:y1], planes[f.c_w, y0:y1] > 0)
+            img = _own_pixel(img, planes[f.c_y:f.c_y + 3, g0:g1], planes[f.c_v:f.c_v + 3, g0:g1],
+                             self.crop(f.var_typical)[:, g0:g1], planes[f.c_w, g0:g1] > 0)
             image[y0:y1] = np.moveaxis(img, 0, -1)
-            radius[y0:y1] = self.crop(self.rad[None])[0, y0:y1] / np.maximum(self.crop(self.cnt[None])[0, y0:y1], 1.0)
+            radius[y0:y1] = self.crop(self.rad[None])[0, g0:g1] / np.maximum(self.crop(self.cnt[None])[0, g0:g1], 1.0)
+            if raw:
+                err_out[:, y0:y1], dx_out[:, y0:y1] = err, dx
             return [float(a[np.isfinite(a)].max()) if np.isfinite(a).any() else None for a in (err, dx)]
 
         found = parallel.run_bands(tops, h, _BAND_ROWS, THREAD_MIN_PIXELS, w)
-        top = [max((t[j] for t in found if t[j] is not None), default=0.0) for j in range(2)]
+        top = [max((t[j] for t in found if t[j] is not None), default=None) for j in range(2)]
+        if raw:
+            self.wsum = self.pred = self.err = self.dxi = self.tsum = None
+            return image, err_out, dx_out, radius, top
+        top = [0.0 if t is None else t for t in top]
 
         def errors(rows):
             y0, y1 = rows
             err, dx, _ = ratios(y0, y1)
-            error[y0:y1] = _finite_errors(err, top[0]).mean(axis=0)
-            dxi[y0:y1] = np.moveaxis(_finite_errors(dx, top[1]), 0, -1)
+            error[y0:y1], dxi[y0:y1] = _finish_errors(err, dx, top)
 
         parallel.run_bands(errors, h, _BAND_ROWS, THREAD_MIN_PIXELS, w)
         self.wsum = self.pred = self.err = self.dxi = self.tsum = None
         return image, error, dxi, radius
+
+
+def _finish_errors(err: np.ndarray, dx: np.ndarray, top) -> tuple:
+    """``error`` (h, W) and ``delta_error`` (h, W, 3) from the blended ratios
+    ``err``, ``dx`` (3, h, W): non-finite ones replaced by the whole frame's
+    largest finite ``top`` = (err, dx) maxima (:func:`_finite_errors`)."""
+    return _finite_errors(err, top[0]).mean(axis=0), np.moveaxis(_finite_errors(dx, top[1]), 0, -1)
 
 
 #: a pixel's own value enters its output (:func:`_own_pixel`) where it lies more
@@ -1414,14 +1583,21 @@ def _result(res: LPFit, kept: np.ndarray | None = None) -> MethodResult:
     return MethodResult(res.image, error, info, dimension=mean_rank, fit=res)
 
 
-def map_result(buf: Buffers, params: Params | None = None) -> MethodResult:
+def map_result(buf: Buffers, params: Params | None = None, run=None, parts: int = 1) -> MethodResult:
     """The reconstruction the loop hands :func:`sample_map` between
     iterations (the optional member of ``core.method.Method``):
     :func:`reconstruct` without the kept noise, which only the error map
     shown and stored at the end reads (the sampler reads the Eq. 4-7
     estimate); the same image and the same sample map, without the
-    calibrated variance the kept noise needs."""
-    return without_kept_noise(reconstruct, Params, buf, params)
+    calibrated variance the kept noise needs.
+
+    With ``run`` (an executor's ``run_jobs`` for :func:`fit_band`, e.g. farm
+    workers) and ``parts`` > 1 the fit is computed as that many bands of rows
+    (:func:`fit_bands`): the same bits, off the controller."""
+    if run is None or int(parts) <= 1:
+        return without_kept_noise(reconstruct, Params, buf, params)
+    p = params if isinstance(params, Params) else params_from_dict(Params, params)
+    return _result(fit_bands(*_inputs(buf), buf.n, p, int(parts), run))
 
 
 def sample_map(buf: Buffers, result: MethodResult, budget: int, params: Params | None = None,

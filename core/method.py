@@ -61,7 +61,10 @@ class Method(Protocol):
     hands ``sample_map`` between iterations when it may be cheaper than the
     final one (oidn: its error estimate without the albedo / normal
     prefilter; lp, rhf: without the kept noise of the error map); without it
-    the loop calls ``reconstruct``.
+    the loop calls ``reconstruct``.  A method whose map splits into pure
+    pieces (lp: ``fit_band``, bands of rows with the same bits as the whole
+    frame) also takes ``map_result(buf, params, run=, parts=)``, and the loop
+    spreads it over an executor's ``run_jobs`` (farm workers).
     """
 
     NAME: str

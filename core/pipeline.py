@@ -19,7 +19,10 @@ may render an iteration's tasks in parallel (e.g. on farm workers) but yields
 the results in task order: the loop merges them in that order, so the image
 does not depend on which executor rendered it; ``drop_passes(names)``, which
 stops rendering feature passes that carry no information; and
-``hold_samples_at(count)``, called before entering when every pixel of the run
+``run_jobs(module, name, jobs) -> list`` with ``map_parts`` (int), which
+computes ``module.name(job)`` for each job (pure functions of their
+arguments, e.g. LP's bands of rows of a sample map) elsewhere, results in
+order; ``hold_samples_at(count)``, called before entering when every pixel of the run
 ends at one known count (:func:`hold_samples`), so the renders may use a
 count-tuned sampling pattern, and ``release_hold()``, called when a selecting
 method's choice samples adaptively after all: the renders from then on use a
@@ -943,7 +946,7 @@ class AdaptiveRun:
         elif getattr(self.method, "map_result", None) is not None:
             # the method's cheaper reconstruction for maps (core/method.py):
             # not the final one, so neither kept for the end nor its time estimate
-            result = self.method.map_result(self.view, self.params)
+            result = self._map_result()
         else:
             t1 = time.perf_counter()
             result = self.method.reconstruct(self.view, self.params)
@@ -954,6 +957,20 @@ class AdaptiveRun:
         planned = self._plan_iteration(result, budget)
         self.timing.adapt += time.perf_counter() - t0
         return planned
+
+    def _map_result(self):
+        """The method's ``map_result``; spread over the executor's workers
+        where both can (the executor's optional ``run_jobs`` and
+        ``map_parts``, the method's ``fit_band``: LP's bands of rows, the
+        same bits as one fit here)."""
+        run = getattr(self.executor, "run_jobs", None)  # optional member, see module notes
+        band = getattr(self.method, "fit_band", None)   # optional method member (core/method.py)
+        parts = int(getattr(self.executor, "map_parts", 1) or 1)
+        if run is None or band is None or parts <= 1:
+            return self.method.map_result(self.view, self.params)
+        module = self.method.__name__
+        return self.method.map_result(self.view, self.params, run=lambda jobs: run(module, "fit_band", jobs),
+                                      parts=parts)
 
     def _plan_iteration(self, result, budget: int):
         """Ask the method for ``budget`` samples and plan them into tasks.

@@ -492,6 +492,31 @@ class DaskExecutor:
                 with contextlib.suppress(Exception):
                     client.cancel(pending)
 
+    @property
+    def map_parts(self) -> int:
+        """Bands a method's map is split into (:meth:`run_jobs`): one per worker."""
+        return max(1, int(self.farm.n_workers))
+
+    def run_jobs(self, module: str, name: str, jobs: list) -> list:
+        """``module.name(job)`` for each job on the workers (LP's bands of a
+        sample map, ``core.lp.fit_band``: pure functions of their inputs, so a
+        job whose worker died runs again elsewhere); results in job order."""
+        client = self.farm.client
+        self.batches += 1
+        try:
+            futures = [client.submit(remote_call(), module, name, job, pure=False, retries=0,
+                                     key=f"cycles-adaptive-map-{self.token}-{self.batches}-{i}")
+                       for i, job in enumerate(jobs)]
+        except Exception as exc:
+            raise _farm_error(self.farm, exc) from None
+        try:
+            return [self._result(f) for f in futures]
+        finally:
+            pending = [f for f in futures if not f.done()]
+            if pending:
+                with contextlib.suppress(Exception):
+                    client.cancel(pending)
+
     def _result(self, fut):
         try:
             results = fut.result()
