@@ -459,7 +459,7 @@ def chunk_rows(width: int, radius: int) -> int:
     """Rows of the bands that chunks of centres never cross
     (:func:`_place_centres`): the scattered band of a chunk, its rows plus the
     window radius either side, stays under ``CHUNK_PIXELS`` pixels."""
-    return max(1, CHUNK_PIXELS // (int(width) + 2 * int(radius)) - 2 * int(radius))
+    return max(1, min(CHUNK_PIXELS // (int(width) + 2 * int(radius)) - 2 * int(radius), int(radius) + 1))
 
 
 def auto_chunk(pixels: int) -> int:
