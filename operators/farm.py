@@ -487,10 +487,7 @@ class DaskExecutor:
             if current is not None:
                 yield color, feats
         finally:
-            pending = [f for f in futures if not f.done()]
-            if pending:
-                with contextlib.suppress(Exception):
-                    client.cancel(pending)
+            _cancel_pending(client, futures)
 
     @property
     def map_parts(self) -> int:
@@ -512,10 +509,7 @@ class DaskExecutor:
         try:
             return [self._result(f) for f in futures]
         finally:
-            pending = [f for f in futures if not f.done()]
-            if pending:
-                with contextlib.suppress(Exception):
-                    client.cancel(pending)
+            _cancel_pending(client, futures)
 
     def _result(self, fut):
         try:
@@ -528,6 +522,14 @@ class DaskExecutor:
             raise _farm_error(self.farm, exc) from None
         fut.release()
         return results
+
+
+def _cancel_pending(client, futures) -> None:
+    """Cancel the futures not done yet (a batch left early: an error or a stop)."""
+    pending = [f for f in futures if not f.done()]
+    if pending:
+        with contextlib.suppress(Exception):
+            client.cancel(pending)
 
 
 CHUNKS_PER_WORKER = 4  # chunks of an iteration per worker: balance against per-chunk overhead
