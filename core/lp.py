@@ -131,7 +131,7 @@ from __future__ import annotations
 
 import threading
 from dataclasses import dataclass, fields
-from functools import lru_cache
+from functools import lru_cache, partial
 
 import numpy as np
 
@@ -1548,8 +1548,13 @@ def _inputs(buf: Buffers):
     return color, var, feats, fvars
 
 
-def reconstruct(buf: Buffers, params: Params | None = None) -> MethodResult:
+def reconstruct(buf: Buffers, params: Params | None = None, run=None, parts: int = 1) -> MethodResult:
     """LP reconstruction (Moon et al. 2015) of the accumulated buffers.
+
+    With ``run`` (an executor's ``run_jobs`` for :func:`fit_band`, e.g. farm
+    workers) and ``parts`` > 1 the fit is computed as that many bands of rows
+    (:func:`fit_bands`): the same bits, off the controller; the kept noise is
+    computed here.
 
     Returns
     -------
@@ -1562,7 +1567,10 @@ def reconstruct(buf: Buffers, params: Params | None = None) -> MethodResult:
         ``centers``, ``passes``, ``mean_radius``, ``mean_rank``.
     """
     params = params if isinstance(params, Params) else params_from_dict(Params, params)
-    res = _fit_buffers(buf, params)
+    if run is None or int(parts) <= 1:
+        res = _fit_buffers(buf, params)
+    else:
+        res = fit_bands(*_inputs(buf), buf.n, params, int(parts), run)
     kept = retained_noise(res.image, buf.color.mean, buf.calibrated_variance()) if params.kept_noise else None
     return _result(res, kept)
 
@@ -1594,10 +1602,9 @@ def map_result(buf: Buffers, params: Params | None = None, run=None, parts: int 
     With ``run`` (an executor's ``run_jobs`` for :func:`fit_band`, e.g. farm
     workers) and ``parts`` > 1 the fit is computed as that many bands of rows
     (:func:`fit_bands`): the same bits, off the controller."""
-    if run is None or int(parts) <= 1:
-        return without_kept_noise(reconstruct, Params, buf, params)
-    p = params if isinstance(params, Params) else params_from_dict(Params, params)
-    return _result(fit_bands(*_inputs(buf), buf.n, p, int(parts), run))
+    spread = run is not None and int(parts) > 1
+    return without_kept_noise(partial(reconstruct, run=run, parts=parts) if spread else reconstruct,
+                              Params, buf, params)
 
 
 def sample_map(buf: Buffers, result: MethodResult, budget: int, params: Params | None = None,

@@ -63,8 +63,10 @@ class Method(Protocol):
     prefilter; lp, rhf: without the kept noise of the error map); without it
     the loop calls ``reconstruct``.  A method whose map splits into pure
     pieces (lp: ``fit_band``, bands of rows with the same bits as the whole
-    frame) also takes ``map_result(buf, params, run=, parts=)``, and the loop
-    spreads it over an executor's ``run_jobs`` (farm workers).
+    frame) also takes ``map_result(buf, params, run=, parts=)`` and
+    ``reconstruct(buf, params, run=, parts=)``, and the loop spreads both
+    (maps, target checks, the final fit) over an executor's ``run_jobs``
+    (farm workers).
     """
 
     NAME: str

@@ -19,10 +19,12 @@ may render an iteration's tasks in parallel (e.g. on farm workers) but yields
 the results in task order: the loop merges them in that order, so the image
 does not depend on which executor rendered it; ``drop_passes(names)``, which
 stops rendering feature passes that carry no information; and
-``run_jobs(module, name, jobs) -> list`` with ``map_parts`` (int), which
-computes ``module.name(job)`` for each job (pure functions of their
-arguments, e.g. LP's bands of rows of a sample map) elsewhere, results in
-order; ``hold_samples_at(count)``, called before entering when every pixel of the run
+``run_jobs(module, name, jobs, local_fallback=False) -> list`` with
+``map_parts`` (int), which computes ``module.name(job)`` for each job (pure
+functions of their arguments, e.g. LP's bands of rows of a sample map or of
+the final fit) elsewhere, results in order; with ``local_fallback`` (the
+final reconstruction, which may come after the executor's context has
+exited) it computes them here when its workers are gone; ``hold_samples_at(count)``, called before entering when every pixel of the run
 ends at one known count (:func:`hold_samples`), so the renders may use a
 count-tuned sampling pattern, and ``release_hold()``, called when a selecting
 method's choice samples adaptively after all: the renders from then on use a
@@ -744,7 +746,7 @@ class AdaptiveRun:
 
     def _timed_reconstruct(self):
         t0 = time.perf_counter()
-        result = self.method.reconstruct(self.view, self.params)
+        result = self.method.reconstruct(self.view, self.params, **self._spread())
         seconds = time.perf_counter() - t0
         self.timing.adapt += seconds
         if self.timed:
@@ -963,14 +965,22 @@ class AdaptiveRun:
         where both can (the executor's optional ``run_jobs`` and
         ``map_parts``, the method's ``fit_band``: LP's bands of rows, the
         same bits as one fit here)."""
+        return self.method.map_result(self.view, self.params, **self._spread())
+
+    def _spread(self, final: bool = False) -> dict:
+        """Keywords that spread the method's fit over the executor's workers
+        (``run``, ``parts``), where both can: the executor's optional
+        ``run_jobs`` and ``map_parts``, the method's ``fit_band``.  ``final``
+        (the last reconstruction, after every render): the executor may
+        compute the jobs here when its workers are gone (``local_fallback``),
+        since no render follows that would need them."""
         run = getattr(self.executor, "run_jobs", None)  # optional member, see module notes
         band = getattr(self.method, "fit_band", None)   # optional method member (core/method.py)
         parts = int(getattr(self.executor, "map_parts", 1) or 1)
         if run is None or band is None or parts <= 1:
-            return self.method.map_result(self.view, self.params)
-        module = self.method.__name__
-        return self.method.map_result(self.view, self.params, run=lambda jobs: run(module, "fit_band", jobs),
-                                      parts=parts)
+            return {}
+        module, extra = self.method.__name__, ({"local_fallback": True} if final else {})
+        return {"run": lambda jobs: run(module, "fit_band", jobs, **extra), "parts": parts}
 
     def _plan_iteration(self, result, budget: int):
         """Ask the method for ``budget`` samples and plan them into tasks.
@@ -1041,7 +1051,7 @@ class AdaptiveRun:
         if reconstructor is None and self._result is not None and self._result[0] == self.samples_rendered:
             result = self._result[1]  # the target check's reconstruction of these very samples
         elif reconstructor is None:
-            result = self.method.reconstruct(self.view, self.params)
+            result = self.method.reconstruct(self.view, self.params, **self._spread(final=True))
         else:
             result = reconstructor(self)
         guard = self.options.guard_z

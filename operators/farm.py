@@ -32,6 +32,7 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
+import importlib
 import ipaddress
 import json
 import os
@@ -55,7 +56,12 @@ WORKER_START_SECONDS = 180.0  # a cold worker imports bpy and distributed (secon
 
 
 class FarmError(Exception):
-    """The farm failed (no scheduler, workers lost, bad settings); one line, exit 1."""
+    """The farm failed (no scheduler, workers lost, bad settings); one line, exit 1.
+    ``lost``: the scheduler or the workers are gone (not an error of a task)."""
+
+    def __init__(self, message: str, lost: bool = False):
+        super().__init__(message)
+        self.lost = bool(lost)
 
 
 # ------------------------------------------------------------------ settings
@@ -494,10 +500,25 @@ class DaskExecutor:
         """Bands a method's map is split into (:meth:`run_jobs`): one per worker."""
         return max(1, int(self.farm.n_workers))
 
-    def run_jobs(self, module: str, name: str, jobs: list) -> list:
+    def run_jobs(self, module: str, name: str, jobs: list, local_fallback: bool = False) -> list:
         """``module.name(job)`` for each job on the workers (LP's bands of a
-        sample map, ``core.lp.fit_band``: pure functions of their inputs, so a
-        job whose worker died runs again elsewhere); results in job order."""
+        sample map or of the final fit, ``core.lp.fit_band``: pure functions
+        of their inputs, so a job whose worker died runs again elsewhere);
+        results in job order.  With ``local_fallback`` (the final
+        reconstruction: no render follows) a lost farm (the scheduler gone,
+        workers that kept dying) does not fail the frame: the jobs are
+        computed here, one line in the log, the same bits."""
+        try:
+            return self._run_jobs(module, name, jobs)
+        except FarmError as exc:
+            if not (local_fallback and exc.lost):
+                raise
+            why = str(exc).split("; ")[0]
+        self.farm.log(f"farm: {why}; computing the {len(jobs)} {name} jobs on this machine")
+        fn = getattr(importlib.import_module(module), name)
+        return [fn(job) for job in jobs]
+
+    def _run_jobs(self, module: str, name: str, jobs: list) -> list:
         client = self.farm.client
         self.batches += 1
         try:
@@ -619,10 +640,11 @@ def _farm_error(farm: Farm, exc) -> FarmError:
     names = {c.__name__ for c in type(exc).__mro__}
     keep = "the checkpoint of the last iteration is kept: rerun with --resume"
     if "KilledWorker" in names:
-        return FarmError(f"a region task was on several workers that died ({_one_line(exc)}); {keep}")
+        return FarmError(f"a region task was on several workers that died ({_one_line(exc)}); {keep}", lost=True)
     if names & LOST or isinstance(exc, (OSError, TimeoutError)):
         where = farm.settings.scheduler or "the local cluster"
-        return FarmError(f"lost the Dask scheduler ({where}): {_one_line(exc)}; {keep} on a new cluster")
+        return FarmError(f"lost the Dask scheduler ({where}): {_one_line(exc)}; {keep} on a new cluster",
+                         lost=True)
     return FarmError(f"a task failed on a worker: {_one_line(exc)}")
 
 

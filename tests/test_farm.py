@@ -5,6 +5,7 @@ spread over workers with temporal chains kept whole.  Real Cycles renders of
 tiny scenes on real worker processes (each test a few seconds to ~40 s; the
 scheduler-loss test waits 3 s for the client to give up)."""
 import argparse
+import contextlib
 import json
 import os
 import shutil
@@ -85,6 +86,17 @@ def farm2():
         yield f
 
 
+def _batches(stream, kind) -> dict:
+    """{batch: set of indices} of a task stream's keys cycles-adaptive-KIND-token-batch-index."""
+    out = {}
+    for t in stream.data:
+        key = str(t["key"])
+        if key.startswith(f"cycles-adaptive-{kind}-"):
+            batch, index = key.split("-")[-2:]
+            out.setdefault(int(batch), set()).add(int(index))
+    return out
+
+
 # ------------------------------------------------------------ identical images
 def test_two_workers_render_exactly_the_local_image(farm2):
     opts = _opts()
@@ -97,6 +109,10 @@ def test_two_workers_render_exactly_the_local_image(farm2):
     assert run.executor.renders > run.tasks_rendered  # tasks were cut into tiles
     workers = {t["worker"] for t in ts.data if "region" in str(t["key"])}
     assert len(workers) == 2  # both workers rendered region tasks
+    maps, renders = _batches(ts, "map"), _batches(ts, "region")
+    # lp's maps (one before each planning round) and its final fit: two bands each, on the workers
+    assert len(maps) >= run.iteration + 1 and all(bands == {0, 1} for bands in maps.values())
+    assert max(maps) > max(renders)  # the last batch of bands is the final fit, after every render
 
 
 def test_buffers_travel_as_float32_only_where_exact():
@@ -162,6 +178,24 @@ def _scheduler_process(tmp_path):
     raise AssertionError("the Dask scheduler did not start")
 
 
+@contextlib.contextmanager
+def _standalone_cluster(tmp_path, workers, log=QUIET["log"]):
+    """(scheduler process, Farm) of a standalone scheduler with ``workers``
+    ``farm-worker`` processes; everything killed on exit."""
+    sched, address = _scheduler_process(tmp_path)
+    procs = [subprocess.Popen(farm.worker_command(farm.worker_bootstrap(address, None, farm.LOOPBACK, f"w{i}")),
+                              stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL) for i in range(workers)]
+    try:
+        with farm.Farm(farm.FarmSettings(scheduler=address), connect_timeout=3.0, log=log) as f:
+            f.client.wait_for_workers(workers, timeout=120)
+            yield sched, f
+    finally:
+        sched.kill()
+        for proc in procs:
+            proc.kill()
+            proc.wait()
+
+
 def test_a_lost_scheduler_stops_with_one_line_and_resume_finishes_exactly(tmp_path, farm2):
     """A standalone scheduler (it never imports this package) with a
     ``farm-worker`` process; the scheduler is killed after iteration 1: one
@@ -170,27 +204,41 @@ def test_a_lost_scheduler_stops_with_one_line_and_resume_finishes_exactly(tmp_pa
     opts = _opts()
     ref_image, ref_n = _local(opts)
     ckpt = str(tmp_path / "run.checkpoint.npz")
-    sched, address = _scheduler_process(tmp_path)
-    worker = subprocess.Popen(farm.worker_command(farm.worker_bootstrap(address, None, farm.LOOPBACK, "w0")),
-                              stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
-    try:
-        with farm.Farm(farm.FarmSettings(scheduler=address), connect_timeout=3.0, **QUIET) as f:
-            f.client.wait_for_workers(1, timeout=120)
-
-            def kill_after_first_iteration(run, p):
-                if p.stage == "checkpoint" and p.iteration == 1:
-                    sched.kill()
-            with pytest.raises(farm.FarmError) as err:
-                _dask(f, opts, checkpoint=ckpt, on_progress=kill_after_first_iteration)
-        msg = str(err.value)
-        assert "\n" not in msg and "lost the Dask scheduler" in msg and "--resume" in msg
-    finally:
-        sched.kill()
-        worker.kill()
-        worker.wait()
+    with _standalone_cluster(tmp_path, 1) as (sched, f):
+        def kill_after_first_iteration(run, p):
+            if p.stage == "checkpoint" and p.iteration == 1:
+                sched.kill()
+        with pytest.raises(farm.FarmError) as err:
+            _dask(f, opts, checkpoint=ckpt, on_progress=kill_after_first_iteration)
+    msg = str(err.value)
+    assert "\n" not in msg and "lost the Dask scheduler" in msg and "--resume" in msg
     image, n, run = _dask(farm2, opts, checkpoint=ckpt, resume_from=ckpt)
     assert np.abs(image - ref_image).max() == 0.0
     assert np.abs(n - ref_n).max() == 0.0
+
+
+def test_a_scheduler_lost_after_the_last_render_still_gives_the_local_image(tmp_path):
+    """lp's final fit goes to the workers in bands; the scheduler is killed
+    after the last render: the fit is computed on the controller instead (one
+    log line), and the image is the local run's."""
+    opts = _opts()
+    ref_image, ref_n = _local(opts)
+    lines = []
+    with _standalone_cluster(tmp_path, 2, log=lines.append) as (sched, f):
+        scene = build_scene(W, H)
+        ex = f.executor_factory()(scene, bpy.context.view_layer, _features(opts), seed=opts.seed)
+        with ex:
+            run = AdaptiveRun(ex, opts)
+            for _ in run.steps():
+                pass
+        assert ex.map_parts == 2 and ex.batches >= 2  # the maps went to the workers
+        sched.kill()
+        sched.wait()
+        result = run.reconstruct()
+    assert np.abs(result.image - ref_image).max() == 0.0
+    assert np.abs(run.buffers.n - ref_n).max() == 0.0
+    fallback = [line for line in lines if "on this machine" in line]
+    assert len(fallback) == 1 and "lost the Dask scheduler" in fallback[0] and "fit_band" in fallback[0]
 
 
 def test_a_worker_refuses_a_file_whose_content_changed(tmp_path):

@@ -77,8 +77,8 @@ def test_the_loop_spreads_lp_maps_over_an_executors_jobs_with_the_same_bits(monk
     class Spreading(FakeExecutor):
         map_parts = 3
 
-        def run_jobs(self, module, name, jobs):
-            seen.append([(j["t0"], j["c0"], j["c1"]) for j in jobs])
+        def run_jobs(self, module, name, jobs, local_fallback=False):
+            seen.append(([(j["t0"], j["c0"], j["c1"]) for j in jobs], local_fallback))
             fn = getattr(importlib.import_module(module), name)
             return [fn(j) for j in jobs]
 
@@ -90,7 +90,9 @@ def test_the_loop_spreads_lp_maps_over_an_executors_jobs_with_the_same_bits(monk
             pass
         runs.append((run, run.reconstruct()))
     (a, ra), (b, rb) = runs
-    assert seen and all(len(s) == 3 and any(t0 > 0 for t0, _, _ in s) for s in seen)
+    assert seen and all(len(s) == 3 and any(t0 > 0 for t0, _, _ in s) for s, _ in seen)
+    # one map before each adaptive iteration, then the final fit (which may fall back to this machine)
+    assert [fallback for _, fallback in seen] == [False] * b.iteration + [True]
     for x, y in [(a.buffers.n, b.buffers.n), (a.buffers.color.mean, b.buffers.color.mean),
                  (ra.image, rb.image), (ra.error, rb.error)]:
         np.testing.assert_array_equal(x, y)
