@@ -130,3 +130,33 @@ def test_a_failing_merge_stops_the_loop_with_its_error(monkeypatch):
         for _ in run.steps():
             pass
     assert run.pending_merge is None
+
+
+@pytest.mark.parametrize("threshold", [INLINE, 1])
+@pytest.mark.parametrize("with_prior", [False, True])
+def test_the_kept_sample_count_is_the_buffers_count_at_every_step(monkeypatch, threshold, with_prior):
+    """``samples_rendered`` is kept by the merges instead of summed per task:
+    wherever the buffers are whole it equals their count less the reused
+    samples, with merges inline or in the background and after a reuse."""
+    from core.buffers import Buffers
+    from core.pipeline import Prior
+    monkeypatch.setattr(pipeline, "MERGE_WORK_PIXELS", threshold)
+    h, w = 20, 28
+    truth = _truth(h, w)
+    prior = None
+    if with_prior:
+        ones = {k: np.ones(v.shape) for k, v in _features(h, w).items()} | {"alpha": np.ones((h, w, 1))}
+        carried = Buffers.from_subsets([truth, truth * 1.01], [3, 3], [ones, ones])
+        prior = lambda buffers: Prior(carried, state={}, info={})  # noqa: E731
+    run = AdaptiveRun(FakeExecutor(truth, _features(h, w)),
+                      Options(method="var", spp=10, initial_spp=2, subsets=2, task_cost=16, min_task_size=2,
+                              iterations=3), prior=prior)
+    checked = 0
+    for _ in run.steps():
+        work = run.pending_merge
+        if run.buffers is not None and (work is None or work.done):
+            assert run.samples_rendered == int(run.buffers.n.sum() - run.reused.sum())
+            checked += 1
+    run.settle()
+    assert checked > 10 and run.samples_rendered == int(run.buffers.n.sum() - run.reused.sum())
+    assert run.reused.sum() == (6 * h * w if with_prior else 0)
