@@ -19,7 +19,12 @@ map and planner; reconstruct when the method's sampler uses it).
 
 ``merge`` and ``plan`` run on the controller's thread count
 (``$CYCLES_ADAPTIVE_THREADS``, ``core.parallel``), record it and write
-``<name>_t<threads>.json``.  ``project --controller-threads C ...`` projects
+``<name>_t<threads>.json``.  ``plan --bands N`` hands the method's fit
+(lp) to a stand-in of the farm's ``run_jobs`` in N bands, computed and
+timed here one after the other (``<name>_b<N>_t<threads>.json``);
+``project`` then takes for W workers the slowest band of the plan whose
+bands have a 4K frame's W bands' height, the transfers at ``--network``
+B/s, and the controller's remaining adapt.  ``project --controller-threads C ...`` projects
 the serial controller part on a C-core controller from the 1- and 2-thread
 files, or from ``--fractions`` (a projection, not a measurement; see
 :func:`amdahl`).  Without ``cycles_<scene>.json`` / ``overhead_w2.json`` pass
@@ -200,10 +205,61 @@ class SyntheticExecutor:
         return rgba, {k: v for k, v in feats.items() if k in self.features}
 
 
+class BandedSyntheticExecutor(SyntheticExecutor):
+    """:class:`SyntheticExecutor` with the farm's ``run_jobs`` / ``map_parts``
+    (``DaskExecutor``: one band per worker), computing the jobs here one
+    after the other and timing each: what each worker would compute, and the
+    bytes Dask would move (``distributed.protocol.serialize_bytes`` of the
+    inputs and of the results, timed too: the controller serialises the one
+    and deserialises the other; counted apart from the controller's adapt)."""
+
+    def __init__(self, w, h, features, parts):
+        super().__init__(w, h, features)
+        self.map_parts = parts
+        self.band_calls = []
+
+    def run_jobs(self, module, name, jobs, local_fallback=False):
+        import importlib
+        from distributed.protocol import serialize_bytes
+        fn = getattr(importlib.import_module(module), name)
+        outs, secs, sent, back = [], [], [], []
+        t_ser = 0.0
+        for job in jobs:
+            t = time.perf_counter()
+            sent.append(len(serialize_bytes(job)))
+            t_ser += time.perf_counter() - t
+            t = time.perf_counter()
+            outs.append(fn(job))
+            secs.append(time.perf_counter() - t)
+            t = time.perf_counter()
+            back.append(len(serialize_bytes(outs[-1])))  # the controller's deserialisation: about as long
+            t_ser += time.perf_counter() - t
+        self.band_calls.append({"band_s": secs, "sent_bytes": sent, "back_bytes": back, "serialize_s": t_ser,
+                                "rows": [int(j["color"].shape[0]) for j in jobs]})
+        return outs
+
+
+def _band_summary(calls):
+    """Sum of the band-call records of one stage: every band time (what the
+    workers compute), the controller's serialisation, the bytes each way."""
+    return {"calls": len(calls), "band_s": [c["band_s"] for c in calls],
+            "rows": [c["rows"] for c in calls],
+            "serialize_s": sum(c["serialize_s"] for c in calls),
+            "sent_bytes": sum(sum(c["sent_bytes"]) for c in calls),
+            "back_bytes": sum(sum(c["back_bytes"]) for c in calls),
+            "bands_total_s": sum(sum(c["band_s"]) for c in calls)}
+
+
 def plan(args):
     m = methods.get(args.method)
     opts = Options(method=args.method, spp=args.spp, seed=0)
-    ex = SyntheticExecutor(args.width, args.height, tuple(m.PASSES))
+    if args.bands > 1:
+        if not hasattr(m, "fit_band"):
+            raise SystemExit(f"--bands: method {args.method} has no fit_band")
+        ex = BandedSyntheticExecutor(args.width, args.height, tuple(m.PASSES), args.bands)
+    else:
+        ex = SyntheticExecutor(args.width, args.height, tuple(m.PASSES))
+    banded = [0]  # band calls already attributed to a stage
     run = AdaptiveRun(ex, opts)
     merged = [0.0]
     merge_one = run._merge
@@ -227,6 +283,9 @@ def plan(args):
         if p.stage == "plan" and p.tasks_total:  # iteration p.iteration + 1 is planned: a barrier
             close()
             current = {"iteration": p.iteration + 1, "adapt_s": run.timing.adapt - adapt0}
+            if args.bands > 1:  # the bands this adapt handed the workers
+                current["bands"] = _band_summary(ex.band_calls[banded[0]:])
+                banded[0] = len(ex.band_calls)
             adapt0 = run.timing.adapt
     close()
     stage_tasks = stages
@@ -234,10 +293,16 @@ def plan(args):
     run.reconstruct()
     rec = time.perf_counter() - t0
     wall = time.perf_counter() - start
-    _save(f"plan_{args.method}_{args.width}x{args.height}_t{parallel.threads()}",
-          {"method": args.method, "width": args.width, "height": args.height, "spp": args.spp,
+    extra = {}
+    if args.bands > 1:
+        extra = {"bands": args.bands, "reconstruct_bands": _band_summary(ex.band_calls[banded[0]:])}
+    suffix = f"_b{args.bands}" if args.bands > 1 else ""
+    _save(f"plan_{args.method}_{args.width}x{args.height}{suffix}_t{parallel.threads()}",
+          {"method": args.method, "width": args.width, "height": args.height, "spp": args.spp, **extra,
            "threads": parallel.threads(), "stages": stage_tasks, "reconstruct_s": rec,
            "adapt_s": sum(st["adapt_s"] for st in stage_tasks), "merge_s": merged[0], "wall_s": wall,
+           # the loop's own time besides adapt, merges, the final reconstruction and the executor's renders
+           "loop_s": wall - rec - run.timing.adapt - merged[0] - run.timing.render,
            "uses_result": bool(m.SAMPLER_USES_RESULT)})
 
 
@@ -360,6 +425,31 @@ def _merge_fit(mg):
     return fit(small), (fit(big) if big else fit(small)), inline
 
 
+def _band_plans(name):
+    """The ``<name>_b<N>`` plan files (``plan --bands N``) by band count."""
+    import glob
+    import re
+    found = {}
+    for path in glob.glob(os.path.join(OUT, f"{name}_b*_t*.json")):
+        m = re.fullmatch(re.escape(name) + r"_b(\d+)_t(\d+)\.json", os.path.basename(path))
+        if m:
+            found[int(m.group(1))] = json.load(open(path))
+    return found
+
+
+def banded_seconds(summary, wscale, byte_scale, bandwidth):
+    """Time one adapt's (or the final reconstruction's) band calls take on
+    the farm: per call the slowest band (every worker computes one band at
+    once; a 4K band has the rows of the planned frame's band, ``wscale``
+    times as wide) plus moving the inputs and results through the
+    controller's network link (``byte_scale`` x the planned bytes at
+    ``bandwidth`` B/s) and the controller's serialisation.  Returns
+    (worker seconds, transfer seconds)."""
+    work = sum(max(b) * wscale for b in summary["band_s"])
+    moved = (summary["sent_bytes"] + summary["back_bytes"]) * byte_scale / bandwidth
+    return work, moved + summary["serialize_s"] * byte_scale
+
+
 def project(args):
     cyc = _load(f"cycles_{args.scene}")
     ov = _load("overhead_w2")
@@ -387,8 +477,21 @@ def project(args):
         scale = 3840 * 2160 / (p1["width"] * p1["height"])
         a1 = sum(st["adapt_s"] for st in p1["stages"])
         a2 = sum(st["adapt_s"] for st in p2["stages"])
+        bands = _band_plans(name)
+        wscale = 3840 / p1["width"]
+
+        def band_plan(W):
+            """The band plan a 4K frame on W workers (W bands of 2160 / W
+            rows) matches: the planned frame cut into the same band height,
+            or the nearest with fewer (taller, slower) bands."""
+            want = W * p1["height"] / 2160
+            fit = [n for n in bands if n <= want + 1e-9]
+            return bands[max(fit)] if fit else None
         for c in args.controller_threads:
             _, fa = amdahl(a1, a2, c)
+
+            def on_c(seconds, threads):  # a time measured on ``threads`` threads, on c (Amdahl, fraction fa)
+                return seconds / (1.0 - fa + fa / threads) * (1.0 - fa + fa / c)
             rec_c, fr = amdahl(p1["reconstruct_s"], p2["reconstruct_s"], c)
             mpx_c, fm = amdahl(b1, b1_2, c)
             if args.fractions:  # given parallel fractions instead of the measured ones
@@ -404,24 +507,50 @@ def project(args):
                 a, b = a_fixed, b_ps * factor
                 rows = {}
                 for W in args.workers:
+                    bp = band_plan(W)
                     ctrl = rec_c * scale  # the final reconstruction
+                    ctrl += p1.get("loop_s", 0.0) * scale  # the loop's own per-task work (serial)
+                    worker_fit = moved = 0.0
+                    if bp is not None:  # the fits on the workers: the controller keeps the rest
+                        rb = bp["reconstruct_bands"]
+                        ctrl = on_c(bp["reconstruct_s"] - rb["bands_total_s"] - rb["serialize_s"], bp["threads"]) * scale
+                        ctrl += p1.get("loop_s", 0.0) * scale
+                        wf, mv = banded_seconds(rb, wscale, scale, args.network)
+                        worker_fit, moved = worker_fit + wf, moved + mv
                     render = merge = stages = 0.0
-                    for st in p1["stages"]:
+                    for i, st in enumerate(p1["stages"]):
                         mf = lambda px: (m0 + m1 * px) if px < inline else (b0 + mpx_c * px)
                         t, r, m = stage_seconds(st["tasks"], W, a, b, o_chunk, mf, scale)
                         stages += t
                         render += r
                         merge += m
-                        ctrl += st["adapt_s"] * (1.0 - fa + fa / c) * scale  # adapt holds per-iteration reconstructions
-                    rows[W] = {"seconds": stages + ctrl, "render_s": render, "merge_s": merge, "controller_s": ctrl}
+                        sb = bp["stages"][i] if bp is not None else None
+                        if sb is not None and sb.get("bands"):
+                            ctrl += on_c(sb["adapt_s"] - sb["bands"]["bands_total_s"] - sb["bands"]["serialize_s"],
+                                         bp["threads"]) * scale
+                            wf, mv = banded_seconds(sb["bands"], wscale, scale, args.network)
+                            worker_fit, moved = worker_fit + wf, moved + mv
+                        else:
+                            ctrl += st["adapt_s"] * (1.0 - fa + fa / c) * scale  # adapt holds per-iteration fits
+                    rows[W] = {"seconds": stages + ctrl + worker_fit + moved, "render_s": render, "merge_s": merge,
+                               "controller_s": ctrl, "worker_fit_s": worker_fit, "transfer_s": moved,
+                               "bands": bp["bands"] if bp is not None else 1}
                 t1 = rows[args.workers[0]]["seconds"]
                 serial = rows[args.workers[0]]["controller_s"] + rows[args.workers[0]]["merge_s"]
+                render1 = rows[args.workers[0]]["render_s"] * args.workers[0]
+                entry = {"barrier_W": round(render1 / serial, 1), "serial_s": round(serial, 1)}
+                for r in rows.values():  # with the fits on the workers the rest depends on W
+                    r["rest_s"] = r["controller_s"] + r["merge_s"] + r["worker_fit_s"] + r["transfer_s"]
                 out[f"{name} x{factor:g} C={c}"] = {
-                    "barrier_W": round(rows[args.workers[0]]["render_s"] * args.workers[0] / serial, 1),
-                    "serial_s": round(serial, 1),
+                    **entry,
                     **{str(W): {"seconds": round(r["seconds"], 1), "speedup": round(t1 / r["seconds"], 2),
                                 "render_s": round(r["render_s"], 1), "merge_s": round(r["merge_s"], 1),
-                                "adapt_reconstruct_s": round(r["controller_s"], 1)} for W, r in rows.items()}}
+                                "adapt_reconstruct_s": round(r["controller_s"], 1),
+                                "worker_fit_s": round(r["worker_fit_s"], 1), "transfer_s": round(r["transfer_s"], 1),
+                                "bands": r["bands"],
+                                # the barrier W if the time outside rendering stayed at this W's: rendering
+                                # still dominates at W while this is >= W
+                                "barrier_W_here": round(render1 / r["rest_s"], 1)} for W, r in rows.items()}}
     source = ("given parallel fractions (--fractions)" if args.fractions
               else "parallel fractions measured from the 1- and 2-thread files")
     _save("project", {"projection": f"Amdahl on C controller cores, {source}; not measured on C cores",
@@ -447,6 +576,9 @@ def main(argv=None):
     p.add_argument("--spp", type=float, default=16)
     p.add_argument("--width", type=int, default=3840)
     p.add_argument("--height", type=int, default=2160)
+    p.add_argument("--bands", type=int, default=1,
+                   help="spread the method's fit over this many bands (lp; the farm's one band per worker), "
+                        "each computed and timed here one after the other")
     k = sub.add_parser("kernels")
     k.add_argument("--width", type=int, default=3840)
     k.add_argument("--height", type=int, default=2160)
@@ -463,6 +595,8 @@ def main(argv=None):
     j.add_argument("--cycles-cost", nargs=2, type=float, metavar=("FIXED_S", "S_PER_PIXEL_SAMPLE"),
                    help="Cycles task cost instead of cycles_<scene>.json")
     j.add_argument("--chunk-overhead", type=float, help="seconds per Dask chunk instead of overhead_w2.json")
+    j.add_argument("--network", type=float, default=1.25e9,
+                   help="controller network bytes per second for banded fits' inputs and results (10 GbE)")
     j.add_argument("--scene-factors", nargs="+", type=float, default=[1.0, 10.0, 100.0],
                    help="multiples of the measured per-pixel-sample cost (heavier production scenes)")
     args = ap.parse_args(argv)
