@@ -18,13 +18,14 @@ and optionally ``render_many(tasks) -> iterator of (color, features)``, which
 may render an iteration's tasks in parallel (e.g. on farm workers) but yields
 the results in task order: the loop merges them in that order, so the image
 does not depend on which executor rendered it; ``drop_passes(names)``, which
-stops rendering feature passes that carry no information; and
+stops rendering feature passes that carry no information;
 ``run_jobs(module, name, jobs, local_fallback=False) -> list`` with
 ``map_parts`` (int), which computes ``module.name(job)`` for each job (pure
 functions of their arguments, e.g. LP's bands of rows of a sample map or of
 the final fit) elsewhere, results in order; with ``local_fallback`` (the
 final reconstruction, which may come after the executor's context has
-exited) it computes them here when its workers are gone; ``hold_samples_at(count)``, called before entering when every pixel of the run
+exited) it computes them here when its workers are gone; and
+``hold_samples_at(count)``, called before entering when every pixel of the run
 ends at one known count (:func:`hold_samples`), so the renders may use a
 count-tuned sampling pattern, and ``release_hold()``, called when a selecting
 method's choice samples adaptively after all: the renders from then on use a
