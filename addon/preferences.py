@@ -22,7 +22,7 @@ from .props import METHOD_ITEMS, PATH_OPTIONS, prop_for
 PACKAGE = __package__.rpartition(".")[0]
 
 #: loop settings the preferences give a default for (their metadata from Options)
-OPTION_DEFAULTS = ("spp", "initial_spp", "max_seconds")
+OPTION_DEFAULTS = ("spp", "initial_spp", "max_seconds", "render_seconds")
 
 #: scene settings the preferences give a default for, beyond OPTION_DEFAULTS
 SETTING_DEFAULTS = ("method", "use_scene_samples", "output_path")

@@ -41,10 +41,11 @@ def _label(f) -> str:
 
 def prop_for(f):
     """A bpy property from a ``param()`` dataclass field (method Params or the
-    loop's Options): its default, ``help`` as tooltip, ``min``/``max`` (the
-    metadata's ``ui_min``, ``soft_max``, ``subtype`` where given)."""
-    default = f.default if f.default is not MISSING else None
+    loop's Options): its default (the metadata's ``ui_default`` where the
+    panel wants another than the CLI), ``help`` as tooltip, ``min``/``max``
+    (the metadata's ``ui_min``, ``soft_max``, ``subtype`` where given)."""
     md = f.metadata
+    default = md.get("ui_default", f.default if f.default is not MISSING else None)
     desc = md.get("help", f.name)
     name = _label(f)
     lo = md.get("ui_min", md.get("min"))

@@ -54,7 +54,7 @@ import copy
 import json
 import threading
 import time
-from dataclasses import asdict, dataclass, field, fields
+from dataclasses import asdict, dataclass, field, fields, replace
 
 import numpy as np
 
@@ -68,6 +68,9 @@ MAX_EXACT_TASKS = 64  # most renders a pixel-exact fallback plan may take
 #: a task this large (256x256) merges on a background thread while the next
 #: renders (Cycles releases the GIL while it renders; numpy's merge does too)
 MERGE_WORK_PIXELS = 1 << 16
+#: Options.render_seconds: the first subset of a run, before any render has
+#: been timed, renders its first band as this share of the rows
+FIRST_BANDS = 8
 
 
 @dataclass
@@ -128,6 +131,15 @@ class Options:
                                "by what the run's renders cost, long renders split, and time kept for "
                                "the final reconstruction and the output's write", 0.0, None,
                                label="Time Limit", subtype="TIME_ABSOLUTE")
+    #: no render longer than this (core/timeplan.py); the panel's default
+    #: (ui_default) keeps Blender drawing and answering Esc between renders
+    render_seconds: float = param(0.0, "longest one render should take, in seconds (0: no bound): a "
+                                  "task the run's own renders predict to take longer renders as bands "
+                                  "of rows, each pixel's samples in one band, so the image is the same; "
+                                  "Blender redraws and answers Esc between renders, at a small cost "
+                                  "per extra render", 0.0, None,
+                                  label="Longest Render", subtype="TIME_ABSOLUTE", soft_max=10.0,
+                                  ui_default=1.0)
     #: the loop then checks the estimate before each round and sizes the
     #: round from the fitted convergence (next_target_spp); --spp is the most it renders
     target_error: float = param(0.0, "keep sampling until the final image's estimated relMSE is "
@@ -328,7 +340,7 @@ class AdaptiveRun:
         self._round_seconds: float | None = None   # a round's seconds besides its renders
         self._round_tasks = 0                      # renders of the latest round
         self._round_samples = 0                    # and its samples
-        self.slices = 0                            # tasks split to fit the limit
+        self.slices = 0                            # tasks split to fit the limit or render_seconds
         self._crop_estimate_at = None              # samples when reconstruct_estimate came from crops
 
     # ------------------------------------------------------------- accounting
@@ -411,6 +423,14 @@ class AdaptiveRun:
         if self.timed and self._sampling_seconds_left() <= 0:
             self.time_limited = True
         return self.time_limited
+
+    def _band_seconds(self) -> float:
+        """``Options.render_seconds`` (0: off), never below twice the renders'
+        fitted overhead, so that bounding a render for the UI's sake cannot
+        turn it into many that mostly pay overhead."""
+        if self.options.render_seconds <= 0:
+            return 0.0
+        return max(self.options.render_seconds, 2.0 * self.cost.fit()[0])
 
     def _would_overrun(self, task) -> bool:
         """A time-limited run's ``task`` is predicted (:attr:`cost`) to end
@@ -639,12 +659,14 @@ class AdaptiveRun:
             tasks, covered, counts = work.result()
         if not tasks:
             return 0
+        n = len(tasks)
         if self.timed:  # no task longer than a slice of the limit
-            n = len(tasks)
             tasks = timeplan.slice_tasks(tasks, self.cost, timeplan.SLICE_SHARE * self.options.max_seconds)
-            self.slices += len(tasks) - n
         before = self.next_index
         tasks, self.next_index = regions.assign_offsets(tasks, self.next_index)
+        # nor than render_seconds: bands keep their task's offset, so its samples
+        tasks = timeplan.band_tasks(tasks, self.cost, self._band_seconds())
+        self.slices += len(tasks) - n
         yield Progress("plan", self.iteration, self._fraction(),
                        f"iteration {self.iteration + 1}: {len(tasks)} region tasks, "
                        f"{int(covered.sum())} samples", 0, len(tasks))
@@ -658,7 +680,10 @@ class AdaptiveRun:
                            f"iteration {self.iteration + 1}: task {len(done)}/{len(tasks)}",
                            len(done), len(tasks))
         if len(done) < len(tasks):  # stopped by the time limit: keep what was rendered
-            self.next_index = regions.assign_offsets(done, before)[1]
+            nxt = np.array(before, np.int64, copy=True)  # each rendered task's own offset (bands too)
+            for t in done:
+                nxt[t.y0:t.y1, t.x0:t.x1] = t.offset + t.samples
+            self.next_index = nxt
             covered = np.zeros_like(covered)
             for t in done:
                 covered[t.y0:t.y1, t.x0:t.x1] += t.samples
@@ -681,17 +706,16 @@ class AdaptiveRun:
             if s and (self._time_up() or self._would_overrun(task)):  # one subset at least: an image
                 self.time_limited = True
                 break
-            color, feats = self._render(task)
-            self._initial_seconds.append(self._last_render_seconds)
-
-            def measure(color=color, feats=feats, task=task):
+            def measure(pieces, task=task):
+                color = _stack_rows([c for c, _ in pieces])
                 meter.add(color, task.samples)
                 for keep, (x0, y0, x1, y1) in zip(self._cv, crops):
-                    keep.append((np.array(np.asarray(color)[y0:y1, x0:x1, :3], np.float64),
-                                 {k: np.array(np.asarray(v)[y0:y1, x0:x1], np.float64)
-                                  for k, v in feats.items() if k in self.method.PASSES},
+                    keep.append((np.array(color[y0:y1, x0:x1, :3], np.float64),
+                                 {k: np.array(_stack_rows([f[k] for _, f in pieces])[y0:y1, x0:x1],
+                                              np.float64)
+                                  for k in pieces[0][1] if k in self.method.PASSES},
                                  task.samples))
-            yield from self._merge_steps(task, color, feats, measure)
+            yield from self._render_subset(task, measure, f"initial pass: subset {s + 1}/{len(tasks)}")
             last = task
             yield Progress("initial", 0, self._fraction(),
                            f"initial pass: subset {s + 1}/{len(tasks)} ({task.samples} spp)",
@@ -853,6 +877,38 @@ class AdaptiveRun:
     def _capped(self, counts: np.ndarray) -> np.ndarray:
         """Apply ``Options.max_pixel_share`` to a map (:func:`core.maps.cap_share`)."""
         return maps.cap_share(counts, self.options.max_pixel_share)
+
+    def _render_subset(self, task, measure, label: str):
+        """Render and merge one whole-frame initial subset ``task``, then
+        ``measure([(color, features), ...])`` on its renders, top to bottom.
+        With ``Options.render_seconds`` a subset the run's renders predict to
+        take longer renders as full-width bands of rows, at most
+        ``timeplan.MAX_BANDS`` (the first subset, before anything is known,
+        as a first band of ``1 / FIRST_BANDS`` of the rows): each band holds the subset's samples and offset, so each
+        pixel still gets one sample group of the same samples, and a
+        Progress between bands lets Blender redraw and answer Esc.  The
+        bands' seconds, summed, are the subset's (``_initial_seconds``)."""
+        longest = self._band_seconds()
+        pieces, seconds, y = [], 0.0, task.y0
+        while y < task.y1:
+            rows = task.y1 - y
+            if longest > 0 and rows > 1:
+                if len(self.cost):
+                    rows = min(rows, max(timeplan.rows_within(self.cost, longest, task.width, task.samples),
+                                         -(-task.height // timeplan.MAX_BANDS)))
+                else:
+                    rows = min(rows, -(-task.height // FIRST_BANDS))
+            band = replace(task, y0=y, y1=y + rows)
+            color, feats = self._render(band)
+            seconds += self._last_render_seconds
+            pieces.append((color, feats))
+            y = band.y1
+            done = y >= task.y1
+            yield from self._merge_steps(band, color, feats, (lambda: measure(pieces)) if done else None)
+            if not done:
+                yield Progress("render", 0, self._fraction(),
+                               f"{label}: rows {task.y0}-{y} of {task.y1}", y - task.y0, task.height)
+        self._initial_seconds.append(seconds)
 
     def _render(self, task):
         """Render one task (the executor: Blender's main thread); (color, features)."""
@@ -1348,9 +1404,15 @@ def render_subsets(executor, buffers: Buffers, spp: int, subsets: int, frame: in
     return buffers
 
 
+def _stack_rows(parts: list) -> np.ndarray:
+    """Bands of rows (top to bottom) as one array; one band as it is."""
+    return np.asarray(parts[0]) if len(parts) == 1 else np.concatenate([np.asarray(p) for p in parts], axis=0)
+
+
 def _options_key(o: Options) -> dict:
     d = asdict(o)
     d.pop("max_seconds", None)
+    d.pop("render_seconds", None)  # how renders are cut, not what they hold
     if not d.get("target_error"):  # checkpoints from before the option resume
         d.pop("target_error", None)
     if d.get("scene_pattern", True):  # likewise (an adaptive run renders Tabulated Sobol either way)

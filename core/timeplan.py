@@ -28,6 +28,10 @@ import numpy as np
 
 #: a task predicted to take longer than this share of the limit is sliced
 SLICE_SHARE = 0.05
+#: most bands of rows :func:`band_tasks` cuts a task into: a bound near the
+#: renders' overhead, or a cost fitted from one render size (which counts the
+#: overhead as sampling), cannot turn one render into hundreds
+MAX_BANDS = 32
 
 
 class RenderCost:
@@ -118,6 +122,35 @@ def extrapolate_seconds(pixels_small: float, seconds_small: float, pixels_large:
     return min(max(fixed + slope * p, t2), scaled)
 
 
+def rows_within(cost: RenderCost, seconds: float, width: int, samples: int) -> int:
+    """Most rows of ``width`` pixels at ``samples`` each that one render is
+    predicted (``cost``) to hold within ``seconds``; at least one (a row is
+    the smallest band)."""
+    c0, c1 = cost.fit()
+    fits = max(float(seconds) - c0, 0.0) / c1 if c1 > 0 else 0.0
+    return max(int(fits / max(int(width) * int(samples), 1)), 1)
+
+
+def band_tasks(tasks, cost: RenderCost, seconds: float) -> list:
+    """``tasks`` with each one predicted (``cost``) to take longer than
+    ``seconds`` cut into full-width bands of rows that fit (one row and a
+    ``MAX_BANDS``-th of the task at least).
+    Unlike :func:`slice_tasks` no pixel's samples are split, so each pixel
+    keeps one sample group and the merged buffers are the uncut task's, bit
+    for bit (``Options.render_seconds``).  ``seconds <= 0`` or an empty
+    cost: ``tasks`` unchanged."""
+    if seconds <= 0 or not len(cost):
+        return list(tasks)
+    out = []
+    for t in tasks:
+        if cost.predict(t.pixels * t.samples) <= seconds:
+            out.append(t)
+            continue
+        rows = max(rows_within(cost, seconds, t.width, t.samples), -(-t.height // MAX_BANDS))
+        out.extend(replace(t, y0=y, y1=min(y + rows, t.y1)) for y in range(t.y0, t.y1, rows))
+    return out
+
+
 def slice_tasks(tasks, cost: RenderCost, seconds: float) -> list:
     """``tasks`` with each one predicted (``cost``) to take longer than
     ``seconds`` split, in place of it, into consecutive sample slices of its
@@ -141,11 +174,10 @@ def slice_tasks(tasks, cost: RenderCost, seconds: float) -> list:
         base, extra = divmod(int(t.samples), parts)
         for i in range(parts):
             piece = replace(t, samples=base + (1 if i < extra else 0))
-            rows = int(fits / max(piece.samples * piece.width, 1))
-            if per_pixel >= 1 or rows >= piece.height:
+            if per_pixel >= 1 or rows_within(cost, seconds, piece.width, piece.samples) >= piece.height:
                 out.append(piece)
                 continue
-            rows = max(rows, 1)  # one row at least: a render of one row is the smallest band
+            rows = rows_within(cost, seconds, piece.width, piece.samples)
             out.extend(replace(piece, y0=y, y1=min(y + rows, piece.y1))
                        for y in range(piece.y0, piece.y1, rows))
     return out

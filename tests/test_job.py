@@ -354,3 +354,28 @@ def test_merges_behind_real_renders_give_the_file_of_inline_merges(tmp_path, mon
     assert set(a) == set(b)
     for p in a:
         assert np.array_equal(a[p], b[p]), p
+
+
+@pytest.mark.parametrize("method", ["uniform", "var"])
+def test_renders_cut_into_bands_for_the_ui_give_the_same_file(tmp_path, method):
+    """``render_seconds`` (the panel's Longest Render) far below what a render
+    takes: every task, the initial subsets included, renders as bands of rows,
+    and the EXR equals the uncut run's, pass for pass, bit for bit (Cycles
+    samples a pixel by its own position and sample index, and each pixel's
+    samples stay in one band)."""
+    results, renders = [], []
+    for name, seconds in (("whole.exr", 0.0), ("bands.exr", 1e-6)):
+        scene = build_scene(24, 16)
+        job = RenderJob(scene, bpy.context.view_layer,
+                        Options(method=method, spp=8, initial_spp=2, subsets=2, frame=scene.frame_current,
+                                task_cost=16, min_task_size=2, render_seconds=seconds), str(tmp_path / name))
+        for _ in job.steps():
+            pass
+        job.finish()
+        renders.append(job.run.tasks_rendered)
+        results.append(imageio.read_layers(job.out)[0])
+    assert renders[1] > renders[0]
+    a, b = results
+    assert set(a) == set(b)
+    for p in a:
+        assert np.array_equal(a[p], b[p]), p

@@ -313,3 +313,70 @@ def test_extrapolation_never_exceeds_the_scaled_larger_crop():
     estimated by scaling the larger crop, not by the line's 16x extrapolation."""
     from core.timeplan import extrapolate_seconds
     assert extrapolate_seconds(4096, 0.01, 16384, 0.2, 262144) == pytest.approx(0.2 * 16)
+
+
+# ------------------------------------------------- a bound on each render (UI)
+def _bounded(monkeypatch, method, render_seconds, spp=64, shape=(40, 48)):
+    import core.pipeline as pipeline
+    clock = _Clock()
+    monkeypatch.setattr(pipeline, "time", types.SimpleNamespace(perf_counter=clock))
+    ex = CostExecutor(_truth(*shape), clock, 0.01, 1e-4)
+    run = AdaptiveRun(ex, Options(method=method, spp=spp, initial_spp=4, subsets=4, iterations=3,
+                                  task_cost=64, min_task_size=4, render_seconds=render_seconds),
+                      started=clock.now)
+    list(run.steps())
+    return run, ex, run.reconstruct()
+
+
+@pytest.mark.parametrize("method", ["uniform", "var", "awr", "lp"])
+def test_render_seconds_bounds_each_render_and_changes_no_bit(monkeypatch, method):
+    """Every render after the first is predicted within the bound, so each
+    one is (the clock's cost is exactly linear), but for bands at the
+    ``MAX_BANDS`` floor, and the run's buffers
+    (counts, groups, means, second moments, halves) and image are those of
+    the run without the bound, bit for bit: bands split rows, never a
+    pixel's samples."""
+    free, ex_free, img_free = _bounded(monkeypatch, method, 0.0)
+    bound = 0.06
+    cut, ex_cut, img_cut = _bounded(monkeypatch, method, bound)
+    cost = [ex_cut.overhead + ex_cut.per_sample * t.pixels * t.samples for t in ex_cut.tasks]
+    longest_free = max(ex_free.overhead + ex_free.per_sample * t.pixels * t.samples for t in ex_free.tasks)
+    assert longest_free > 2 * bound  # the bound has work to do
+    fewest_rows = -(-40 // timeplan.MAX_BANDS)  # a band holds at least this many of the 40 rows
+    assert all(c <= bound + 1e-9 or t.height <= fewest_rows for c, t in zip(cost[1:], ex_cut.tasks[1:]))
+    assert cost[0] <= longest_free / 8 + ex_cut.overhead  # the first band, before any timing
+    assert len(ex_cut.tasks) > len(ex_free.tasks)
+    a, b = free.buffers, cut.buffers
+    np.testing.assert_array_equal(a.n, b.n)
+    np.testing.assert_array_equal(a.k, b.k)
+    np.testing.assert_array_equal(a.color.mean, b.color.mean)
+    np.testing.assert_array_equal(a.color.m2, b.color.m2)
+    for name in a.features:
+        np.testing.assert_array_equal(a.features[name].mean, b.features[name].mean)
+    assert (a.half is None) == (b.half is None)
+    if a.half is not None:
+        np.testing.assert_array_equal(a.half.n, b.half.n)
+    assert a.exponent == b.exponent
+    np.testing.assert_array_equal(img_free.image, img_cut.image)
+
+
+def test_render_seconds_below_the_overhead_cuts_no_task_into_more_than_max_bands(monkeypatch):
+    """A bound below the renders' own overhead would make every band mostly
+    overhead: once the fit separates the overhead, bands are held to twice
+    it, and no task becomes more than ``MAX_BANDS`` renders."""
+    free, ex_free, _ = _bounded(monkeypatch, "var", 0.0, shape=(96, 48))
+    run, ex, _ = _bounded(monkeypatch, "var", 1e-4, shape=(96, 48))
+    assert len(ex_free.tasks) < len(ex.tasks) <= timeplan.MAX_BANDS * len(ex_free.tasks)
+    assert run._band_seconds() >= 2 * ex.overhead * 0.999
+    np.testing.assert_array_equal(free.buffers.color.mean, run.buffers.color.mean)
+
+
+def test_band_tasks_cover_each_task_once_in_full_width_rows():
+    cost = _cost(0.0, 1e-3)
+    tasks = [regions.RegionTask(2, 3, 42, 30, 3), regions.RegionTask(0, 0, 4, 4, 1)]
+    out = timeplan.band_tasks(tasks, cost, 0.5)
+    big = [t for t in out if t.x0 == 2]
+    assert out[-1] == tasks[1] and all(t.samples == 3 and t.x1 == 42 for t in big)
+    assert big[0].y0 == 3 and big[-1].y1 == 30 and all(a.y1 == b.y0 for a, b in zip(big, big[1:]))
+    assert all(cost.predict(t.pixels * t.samples) <= 0.5 for t in big)
+    assert timeplan.band_tasks(tasks, cost, 0.0) == tasks and timeplan.band_tasks(tasks, RenderCost(), 1) == tasks
