@@ -103,6 +103,19 @@ def test_use_scene_samples_takes_the_budget_from_cycles(addon):
     assert options(scene).spp == 48.0
 
 
+def test_the_panel_bounds_each_render_where_the_cli_does_not(addon):
+    """Longest Render: 1 s in the panel (Cycles blocks Blender's main thread
+    while it renders), off for the command line, where no UI waits."""
+    from cycles_adaptive.addon.props import options
+    from cycles_adaptive.core.pipeline import Options
+    scene = _scene()
+    assert Options().render_seconds == 0.0
+    assert scene.cycles_adaptive.render_seconds == pytest.approx(1.0)
+    assert options(scene).render_seconds == pytest.approx(1.0)
+    scene.cycles_adaptive.render_seconds = 0.0
+    assert options(scene).render_seconds == 0.0
+
+
 @pytest.mark.parametrize("method", ["var", "awr", "lp", "rhf"])
 def test_advanced_lists_the_other_loop_settings_and_every_method_parameter_with_its_label(addon, method):
     from cycles_adaptive.addon.props import _label
