@@ -380,3 +380,26 @@ def test_band_tasks_cover_each_task_once_in_full_width_rows():
     assert big[0].y0 == 3 and big[-1].y1 == 30 and all(a.y1 == b.y0 for a, b in zip(big, big[1:]))
     assert all(cost.predict(t.pixels * t.samples) <= 0.5 for t in big)
     assert timeplan.band_tasks(tasks, cost, 0.0) == tasks and timeplan.band_tasks(tasks, RenderCost(), 1) == tasks
+
+
+@pytest.mark.parametrize("method", ["uniform", "lp"])
+def test_a_stop_between_the_first_subsets_bands_keeps_finite_rows(monkeypatch, method):
+    """Esc between two bands of the first subset: the rows rendered are kept,
+    the rest hold no sample, and the image of what there is stays finite."""
+    import core.pipeline as pipeline
+    clock = _Clock()
+    monkeypatch.setattr(pipeline, "time", types.SimpleNamespace(perf_counter=clock))
+    ex = CostExecutor(_truth(40, 48), clock, 0.01, 1e-4)
+    run = AdaptiveRun(ex, Options(method=method, spp=16, initial_spp=4, subsets=4, render_seconds=1e-3),
+                      started=clock.now)
+    steps = run.steps()
+    for p in steps:
+        if p.stage == "render" and "rows" in p.message:
+            break
+    steps.close()
+    run.settle()
+    n = run.buffers.n
+    assert n[0, 0] > 0 and (n[:5] == n[0, 0]).all() and (n[5:] == 0).all()  # a first band of 40 / 8 rows
+    assert np.isfinite(run.reconstruct().image).all()
+    from core.pipeline import _options_key
+    assert _options_key(Options(render_seconds=2.0)) == _options_key(Options())  # resumes either way
