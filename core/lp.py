@@ -594,7 +594,7 @@ def fit_centres(frame: _Frame, centre_flat: np.ndarray, params: Params, keep_mod
         grad[sel] = np.matmul(bg[:, :, 1:], design.t)                    # slopes in raw x - x_c
         pred[sel] = np.maximum(design.predict(bg), lower[grp][:, :, None])   # Eq. 1
         if keep_models:
-            with parallel.LAPACK_LOCK:                 # see parallel.LAPACK_LOCK
+            with parallel.lapack_lock():               # see parallel.lapack_lock
                 pinv[sel, :, :p, :p] = np.linalg.inv(gram)
         if all_rings:
             for r in range(radius + 1):

@@ -25,6 +25,7 @@ from __future__ import annotations
 import os
 import threading
 from collections import deque
+from contextlib import contextmanager, nullcontext
 from concurrent.futures import ThreadPoolExecutor
 
 ENV = "CYCLES_ADAPTIVE_THREADS"
@@ -110,12 +111,20 @@ def map_ordered(fn, items, min_items: int = 2, ahead: int | None = None):
     in flight (submitted and not yet consumed), so a long item list does not
     queue all its pieces at once; every result is kept for the returned list
     (pieces that return large arrays should reduce them instead:
-    :func:`ordered_reduce`).  The first exception raised by ``fn`` propagates after the pieces
+    :func:`ordered_reduce`).  BLAS runs on one thread meanwhile
+    (:func:`one_blas_thread`).  The first exception raised by ``fn`` propagates after the pieces
     already submitted have finished (none is left running)."""
     items = list(items)
     n = threads()
-    if n <= 1 or len(items) < max(2, int(min_items)) or in_pool():
+    if in_pool():
         return [fn(item) for item in items]
+    with one_blas_thread():
+        if n <= 1 or len(items) < max(2, int(min_items)):
+            return [fn(item) for item in items]
+        return _map_on_pool(fn, items, n, ahead)
+
+
+def _map_on_pool(fn, items, n, ahead):
     pool = _pool(n)
     ahead = max(1, int(ahead) if ahead else 2 * n)
     out = []
@@ -155,11 +164,79 @@ def run_bands(fn, height: int, rows: int = 64, min_work: int = 0, work_per_row: 
     return map_ordered(fn, pieces)
 
 
-#: np.linalg.inv (LAPACK getrf/getri) runs one call at a time: OpenBLAS's
-#: LAPACK called from several threads at once contends for its buffers (a
-#: batched 10x10 inverse took 2x, 5x, 30x longer with 2, 3, 5 threads;
-#: matmul and eigh did not); core/lp.py and core/rhf.py take it
+#: np.linalg.inv (LAPACK getrf/getri) runs one call at a time while BLAS has
+#: threads of its own: OpenBLAS's LAPACK called from several threads at once
+#: then contends for its buffers (a batched 10x10 inverse took 2x, 5x, 30x
+#: longer with 2, 3, 5 threads; matmul and eigh did not).  core/lp.py and
+#: core/rhf.py take it through :func:`lapack_lock`.
 LAPACK_LOCK = threading.Lock()
+
+_BLAS_LOCK = threading.Lock()
+_BLAS = {"depth": 0, "limiter": None, "single": False, "controller": None, "looked": False}
+
+
+def _blas_controller():
+    """threadpoolctl's view of the BLAS libraries loaded in this process, made
+    once (it walks the loaded libraries); None without threadpoolctl."""
+    if not _BLAS["looked"]:
+        _BLAS["looked"] = True
+        try:
+            from threadpoolctl import ThreadpoolController
+            _BLAS["controller"] = ThreadpoolController()
+        except Exception:                      # not installed, or an odd platform
+            _BLAS["controller"] = None
+    return _BLAS["controller"]
+
+
+@contextmanager
+def one_blas_thread():
+    """Run the enclosed work with BLAS / LAPACK on one thread of their own.
+
+    Why: our pieces are small (a 10x10 inverse per window, products of
+    (n, 10) blocks) and already run one per controller thread; OpenBLAS
+    threading each small LU on top of that made numpy's batched 10x10
+    inverse 5x slower (2.61 ms vs 0.48 ms for 185 of them) and RHF's
+    regression ~25 % slower.  The environment variable
+    ``OPENBLAS_NUM_THREADS`` cannot do this inside Blender, where numpy is
+    loaded before any add-on, so threadpoolctl sets the loaded library's
+    count and restores it on exit.  Re-entrant and shared by threads: the
+    first to enter sets the limit, the last to leave restores it.  Without
+    threadpoolctl (or without a BLAS it knows) nothing changes: same results,
+    only slower.  Results agree to rounding either way (RHF's image within
+    3e-12 relative: a threaded LU blocks its updates differently); for one
+    setting they do not depend on :func:`threads`."""
+    with _BLAS_LOCK:
+        if _BLAS["depth"] == 0:
+            ctl = _blas_controller()
+            limiter = single = None
+            if ctl is not None:
+                try:
+                    blas = ctl.select(user_api="blas")
+                    if blas.lib_controllers:
+                        limiter = blas.limit(limits=1)
+                        single = all(c.num_threads == 1 for c in blas.lib_controllers)
+                except Exception:
+                    limiter = None
+            _BLAS["limiter"], _BLAS["single"] = limiter, bool(limiter is not None and single)
+        _BLAS["depth"] += 1
+    try:
+        yield
+    finally:
+        with _BLAS_LOCK:
+            _BLAS["depth"] -= 1
+            if _BLAS["depth"] == 0:
+                limiter, _BLAS["limiter"], _BLAS["single"] = _BLAS["limiter"], None, False
+                if limiter is not None:
+                    limiter.restore_original_limits()
+
+
+def lapack_lock():
+    """The context a batched LAPACK call (np.linalg.inv) runs in: nothing
+    while :func:`one_blas_thread` holds BLAS at one thread (single-threaded
+    LAPACK calls from several threads do not contend: two threads' 10x10
+    inverses took 0.18 ms each unlocked, 0.27 ms locked), else
+    :data:`LAPACK_LOCK`."""
+    return nullcontext() if _BLAS["single"] else LAPACK_LOCK
 
 
 class _Failure:

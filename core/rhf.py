@@ -887,7 +887,7 @@ def hat_bias_variance(X, w, Y, y_prev, var_prev, ridge: float = 1e-3, pilot_var=
         del Xw, XwT
     if need_a:
         A += regularizer(w.sum(-1), P, ridge)
-        with parallel.LAPACK_LOCK:              # one LAPACK call at a time
+        with parallel.lapack_lock():            # one LAPACK call at a time, if BLAS threads
             try:
                 Ainv = np.linalg.inv(A)
             except np.linalg.LinAlgError:

@@ -1,9 +1,11 @@
 """Run by tests/test_extension.py in a fresh process: install a built extension zip under bpy with
-the venv's OpenImageIO hidden, enable it, check the UI is registered and run the render operator.
+the venv's OpenImageIO and threadpoolctl hidden, enable it, check the UI is registered and run the
+render operator.
 
 argv: ZIP REPO_DIR OUT_EXR.  ``BLENDER_USER_EXTENSIONS`` (set by the test) is the user extensions
 folder; Blender unpacks an extension's wheels into its ``.local/lib/pythonX.Y/site-packages``
-(addon_utils._extension_sync_wheels), and only from there may OpenImageIO be imported here.
+(addon_utils._extension_sync_wheels), and only from there may OpenImageIO and threadpoolctl be
+imported here.
 """
 import importlib
 import importlib.abc
@@ -22,16 +24,20 @@ def _inside(path, root):
     return path == root or path.startswith(root + os.sep)
 
 
-class OnlyBundledOpenImageIO(importlib.abc.MetaPathFinder):
-    """Find OpenImageIO (and its submodules) only under the extension's wheel site-packages.
+BUNDLED = ("OpenImageIO", "threadpoolctl")   # the manifest's wheels
 
-    Installed first on ``sys.meta_path``, before bpy loads anything: the venv's OpenImageIO (and
-    any other copy on ``sys.path``) cannot satisfy the import, so the add-on loads only if the wheel
-    bundled in the zip was installed and put on ``sys.path`` by Blender.
+
+class OnlyBundledWheels(importlib.abc.MetaPathFinder):
+    """Find the bundled distributions (and their submodules) only under the extension's wheel
+    site-packages.
+
+    Installed first on ``sys.meta_path``, before bpy loads anything: the venv's copies (and any
+    other copy on ``sys.path``) cannot satisfy the import, so the add-on loads only if the wheels
+    bundled in the zip were installed and put on ``sys.path`` by Blender.
     """
 
     def find_spec(self, name, path=None, target=None):
-        if name.partition(".")[0] != "OpenImageIO":
+        if name.partition(".")[0] not in BUNDLED:
             return None
         search = [p for p in (sys.path if path is None else path) if _inside(p, WHEEL_SITE)]
         spec = importlib.machinery.PathFinder.find_spec(name, search)
@@ -41,12 +47,14 @@ class OnlyBundledOpenImageIO(importlib.abc.MetaPathFinder):
         return spec
 
 
-sys.meta_path.insert(0, OnlyBundledOpenImageIO())
-try:
-    import OpenImageIO  # noqa: F401
-    hidden_before = False
-except ImportError:
-    hidden_before = True
+sys.meta_path.insert(0, OnlyBundledWheels())
+hidden_before = True
+for _name in BUNDLED:
+    try:
+        importlib.import_module(_name)
+        hidden_before = False
+    except ImportError:
+        pass
 
 import bpy  # noqa: E402
 import numpy as np  # noqa: E402
@@ -93,6 +101,12 @@ commands = sorted(next(a for a in parser._actions if isinstance(a, argparse._Sub
 api = importlib.import_module(f"{pkg}.api")
 api_result = api.render(scene, method="uniform", spp=2)
 api_ok = api.compare(api_result, api_result.save(out.replace(".exr", "_api.exr"))).passed
+# the controller's pieces ran with one BLAS thread, through the bundled threadpoolctl
+tpc = sys.modules.get("threadpoolctl")
+par = importlib.import_module(f"{pkg}.core.parallel")
+blas_in_pieces = par.map_ordered(
+    lambda _: sorted({i["num_threads"] for i in tpc.threadpool_info() if i["user_api"] == "blas"}),
+    range(2)) if tpc else None
 print("RESULT " + json.dumps({
     "api": bool(api_ok),
     "version": list(bpy.app.version[:2]), "install": sorted(install),
@@ -100,6 +114,7 @@ print("RESULT " + json.dumps({
     "hidden_before": hidden_before, "wheel_site": WHEEL_SITE,
     "wheel_site_on_path": any(_inside(p, WHEEL_SITE) for p in sys.path),
     "oiio_file": getattr(oiio, "__file__", None), "addon_oiio_file": io_mod.oiio.__file__,
+    "tpc_file": getattr(tpc, "__file__", None), "blas_in_pieces": blas_in_pieces,
     "op": sorted(result), "exists": os.path.isfile(out),
     "png": os.path.isfile(os.path.splitext(out)[0] + ".png"),
     "exr_shape": list(combined.shape) if combined is not None else None,

@@ -1,5 +1,6 @@
-"""The extension as an artist gets it: one zip per platform carrying its OpenImageIO wheel, installed
-under this venv's bpy with the venv's OpenImageIO hidden, enabled, and rendering through the operator.
+"""The extension as an artist gets it: one zip per platform carrying its OpenImageIO wheel and the
+pure-Python threadpoolctl wheel, installed under this venv's bpy with the venv's copies hidden,
+enabled, and rendering through the operator.
 
 run-tests.sh runs this file under Blender 4.2, 4.5 and 5.0 (``.venv-4.2``, ``.venv``, ``.venv-5.0``).
 The wheels are fetched once into the git-ignored ``wheels/`` by tools/build_extension.py; without them
@@ -89,16 +90,20 @@ def test_one_valid_zip_per_platform_each_with_only_its_wheel(zips):
         with zipfile.ZipFile(path) as zf:
             names = zf.namelist()
             wheels = [n for n in names if n.endswith(".whl")]
+            pure = [n for n in wheels if n.endswith("-py3-none-any.whl")]
+            assert [os.path.basename(n).split("-")[0] for n in pure] == ["threadpoolctl"], (plat, wheels)
+            wheels = [n for n in wheels if n not in pure]
             assert len(wheels) == 1, (plat, wheels)
             tag = wheels[0][:-4].split("-")[-1]
             prefix, suffix = WHEEL_TAG[plat]
             assert all(t.startswith(prefix) and t.endswith(suffix) for t in tag.split(".")), (plat, tag)
             # bundled unmodified: the bytes are the cached download's
-            with open(os.path.join(ROOT, wheels[0]), "rb") as fh:
-                assert hashlib.sha256(zf.read(wheels[0])).digest() == hashlib.sha256(fh.read()).digest()
+            for w in wheels + pure:
+                with open(os.path.join(ROOT, w), "rb") as fh:
+                    assert hashlib.sha256(zf.read(w)).digest() == hashlib.sha256(fh.read()).digest()
             generated = tomllib.loads(zf.read("blender_manifest.toml").decode())["build"]["generated"]
         assert generated["platforms"] == [plat]
-        assert generated["wheels"] == ["./" + wheels[0]]
+        assert sorted(generated["wheels"]) == sorted("./" + w for w in wheels + pure)
         assert "blender_manifest.toml" in names and "core/pipeline.py" in names and "core/io.py" in names
         assert not any(n.startswith(("tests/", ".venv", "sample_blends/", "bench/", "tools/", "docs/",
                                      "build/", "run-tests.sh", "setup.sh")) for n in names), names
@@ -121,6 +126,8 @@ def test_installs_with_only_the_bundled_openimageio_enables_and_renders(zips, tm
     assert res["wheel_site_on_path"], res
     assert res["oiio_file"] == res["addon_oiio_file"], res
     assert res["oiio_file"].startswith(res["wheel_site"] + os.sep), res
+    assert res["tpc_file"] and res["tpc_file"].startswith(res["wheel_site"] + os.sep), res
+    assert res["blas_in_pieces"] == [[1], [1]], res
     assert res["install"] == ["FINISHED"] and res["enabled"], res
     assert res["op"] == ["FINISHED"], res
     assert res["api"], res

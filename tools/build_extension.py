@@ -1,4 +1,5 @@
-"""Build the extension: one zip per platform, each with the OpenImageIO wheel it needs.
+"""Build the extension: one zip per platform, each with the OpenImageIO wheel it needs (and the
+pure-Python wheels every platform shares).
 
     python tools/build_extension.py                        # -> build/extension/*.zip
     python tools/build_extension.py --output-dir DIR
@@ -32,6 +33,8 @@ import tomllib
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 EXIT_BAD_INPUT, EXIT_OFFLINE = 2, 3
+# a pure-Python wheel (py3-none-any) is asked for as Blender 4.2-5.0's Python would install it
+PURE_PYTHON_VERSION = "3.11"
 
 # What pip prints (urllib3 / requests) when the index cannot be reached at all, as opposed to a
 # reachable index without the requested file.
@@ -71,6 +74,9 @@ def wheel_request(rel_path: str) -> dict:
     if not 5 <= len(parts) <= 6:
         raise BuildError(f"blender_manifest.toml: {rel_path!r} is not a wheel file name", EXIT_BAD_INPUT)
     dist, version, py_tag, abi, platform = parts[0], parts[1], parts[-3], parts[-2], parts[-1]
+    if (py_tag, abi, platform) == ("py3", "none", "any"):          # pure Python: one for all
+        return {"file": name, "requirement": f"{dist}=={version}", "pure": True,
+                "python_version": PURE_PYTHON_VERSION}
     if not (py_tag.startswith("cp") and py_tag[2:].isdigit() and len(py_tag) >= 4):
         raise BuildError(f"blender_manifest.toml: {name}: expected a CPython tag such as cp311",
                          EXIT_BAD_INPUT)
@@ -97,9 +103,11 @@ def missing_wheels(root: str = ROOT, manifest: dict | None = None) -> list[str]:
 
 def _pip_download(req: dict, dest: str, python: str) -> None:
     """Download exactly the wheel ``req`` describes into ``dest`` (a fresh folder)."""
+    target = (["--python-version", req["python_version"]] if req.get("pure") else
+              ["--implementation", "cp", "--abi", req["abi"], "--platform", req["platform"],
+               "--python-version", req["python_version"]])
     cmd = [python, "-m", "pip", "download", "--disable-pip-version-check", "--no-input",
-           "--only-binary=:all:", "--no-deps", "--implementation", "cp", "--abi", req["abi"],
-           "--platform", req["platform"], "--python-version", req["python_version"],
+           "--only-binary=:all:", "--no-deps", *target,
            "--retries", "2", "--timeout", "20", "--dest", dest, req["requirement"]]
     run = subprocess.run(cmd, capture_output=True, text=True)
     if run.returncode != 0:

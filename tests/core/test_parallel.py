@@ -133,3 +133,51 @@ def test_band_reduction_is_identical_for_any_thread_count():
         sums.append(total)
     assert all(np.array_equal(sums[0], s) for s in sums[1:])
 
+
+
+def _blas_threads():
+    from threadpoolctl import threadpool_info
+    return [i["num_threads"] for i in threadpool_info() if i["user_api"] == "blas"]
+
+
+def test_pieces_run_with_one_blas_thread_and_the_count_comes_back():
+    pytest.importorskip("threadpoolctl")
+    before = _blas_threads()
+    if not before:
+        pytest.skip("no BLAS library that threadpoolctl knows is loaded")
+    parallel.set_threads(2)
+    seen = parallel.map_ordered(lambda _: (_blas_threads(), parallel.lapack_lock()), range(6))
+    assert all(t == [1] * len(before) for t, _ in seen)
+    # one-threaded LAPACK calls need no lock; outside the pieces they take it again
+    assert all(lock is not parallel.LAPACK_LOCK for _, lock in seen)
+    assert _blas_threads() == before
+    assert parallel.lapack_lock() is parallel.LAPACK_LOCK
+
+
+def test_one_blas_thread_nests_and_restores_only_at_the_outermost_exit():
+    pytest.importorskip("threadpoolctl")
+    before = _blas_threads()
+    if not before:
+        pytest.skip("no BLAS library that threadpoolctl knows is loaded")
+    with parallel.one_blas_thread():
+        with parallel.one_blas_thread():
+            assert _blas_threads() == [1] * len(before)
+        assert _blas_threads() == [1] * len(before)       # the outer scope still holds
+        inner = parallel.map_ordered(lambda _: _blas_threads(), range(3))
+        assert inner == [[1] * len(before)] * 3
+    assert _blas_threads() == before
+    with pytest.raises(RuntimeError):                      # an error restores it too
+        with parallel.one_blas_thread():
+            raise RuntimeError("boom")
+    assert _blas_threads() == before
+
+
+def test_without_threadpoolctl_the_work_runs_unchanged_under_the_lock(monkeypatch):
+    monkeypatch.setitem(parallel._BLAS, "looked", True)
+    monkeypatch.setitem(parallel._BLAS, "controller", None)
+    parallel.set_threads(2)
+    a = np.arange(400.0).reshape(4, 10, 10) + 50 * np.eye(10)
+    got = parallel.map_ordered(lambda i: (parallel.lapack_lock(), np.linalg.inv(a[i])), range(4))
+    assert all(lock is parallel.LAPACK_LOCK for lock, _ in got)
+    for i, (_, inv) in enumerate(got):
+        np.testing.assert_allclose(inv @ a[i], np.eye(10), atol=1e-9)
