@@ -132,14 +132,18 @@ def _window_sums(z: np.ndarray, L: int, axis: int, start: int, stop: int) -> np.
         p *= 2
     if L == 1:
         sums[1] = z[sl(lo, hi)]
-    out = None
+    parts = []
     off = 0
     while p >= 1:
         if L & p:
-            part = sums[p][sl(off, off + n)]
-            out = part.copy() if out is None else np.add(out, part, out=out)
+            parts.append(sums[p][sl(off, off + n)])
             off += p
         p //= 2
+    if len(parts) == 1:
+        return parts[0].copy()
+    out = np.add(parts[0], parts[1])           # the first two added into a new array
+    for part in parts[2:]:
+        np.add(out, part, out=out)
     return out
 
 
@@ -426,9 +430,13 @@ def nlm_filter(values, variances, k: float, radius: int, patch_radius: int,
     out = np.empty((h, w, c))
     rows = max(1, int(chunk_pixels) // max(1, w))
 
+    with np.errstate(over="ignore", invalid="ignore"):
+        vk = v * k2                             # Eq. 5's k^2 Var, once per image, and
+        vke = vk + epsd                         # k^2 Var + eps: the denominator's halves
+
     def strip(y0):
         with np.errstate(over="ignore", invalid="ignore", divide="ignore"):
-            _nlm_strip(y, v, g, ginv if g is not None else None, out, r, pr, k2, epsd, inv2sr,
+            _nlm_strip(y, v, vk, vke, g, ginv if g is not None else None, out, r, pr, inv2sr,
                        sigma_s, mean_w, channelwise, cw, dtype, rows, y0)
 
     # strips are independent (each writes only its own output rows) and cut
@@ -437,11 +445,12 @@ def nlm_filter(values, variances, k: float, radius: int, patch_radius: int,
     return out[..., 0] if squeeze else out
 
 
-def _nlm_strip(y, v, g, ginv, out, r, pr, k2, epsd, inv2sr, sigma_s, mean_w, channelwise, cw,
+def _nlm_strip(y, v, vk, vke, g, ginv, out, r, pr, inv2sr, sigma_s, mean_w, channelwise, cw,
                dtype, rows, y0):
     """One row strip [y0, y0 + rows) of ``nlm_filter`` (loops over offsets
     only), written to ``out``; its own scratch buffer, so strips can run on
-    :mod:`core.parallel`'s threads.
+    :mod:`core.parallel`'s threads.  ``vk`` = k^2 v and ``vke`` = k^2 v + eps
+    (Eq. 5's denominator is vk_p + vke_q).
 
     Weighted sums are accumulated in float64 for float64 input and in float32
     for float32 input (at most (2r+1)^2 terms in [0, 1]: relative error < 1e-5).
@@ -479,9 +488,7 @@ def _nlm_strip(y, v, g, ginv, out, r, pr, k2, epsd, inv2sr, sigma_s, mean_w, cha
             m = np.minimum(vp, vq)
             m += vp
             d -= m
-            m = np.add(vp, vq, out=m)
-            m *= k2
-            m += epsd
+            m = np.add(vk[ra:rb, ca:cb], vke[ra + dy:rb + dy, ca + dx:cb + dx], out=m)
             d /= m
             if channelwise:
                 np.minimum(d, D_CLIP, out=buf[pr:pr + R, pr:pr + Wc])
@@ -597,7 +604,9 @@ def _center_patch_sums(ye, ve, inside, acc, cnt, epsd, r, pr, c):
     differ from the per-k formula only where a pair's distance is beyond
     D_CLIP / 16 (patch weights below e^-600: zero once quantised) or where
     the variances are ~eps (zero-variance pixels, returned unchanged by RHF).
-    One division per pixel pair and channel instead of one per k.
+    One division per pixel pair and channel instead of one per k.  The
+    channel mean's 1/C is applied once to ``acc`` at the end (the clip is
+    then at C D_CLIP), and eps is added to the gathered variances once.
     ye, ve : (C, N, E, E) gathered values / variances, E = s + 2 pr.
     """
     R = r + pr
@@ -608,7 +617,9 @@ def _center_patch_sums(ye, ve, inside, acc, cnt, epsd, r, pr, c):
     sv = np.empty((c, n, s, s), dt)
     dsum = np.empty((n, s, s), dt)
     ok = np.empty((n, s, s), bool)
-    inv_c = dt.type(1.0 / c)
+    clip = dt.type(D_CLIP * c)
+    ve_eps = ve + epsd                                               # vb + eps, once
+    part = np.zeros_like(acc)
     for ly in range(-pr, pr + 1):
         for lx in range(-pr, pr + 1):
             sl = (slice(None), slice(pr + ly, pr + ly + s), slice(pr + lx, pr + lx + s))
@@ -622,8 +633,7 @@ def _center_patch_sums(ye, ve, inside, acc, cnt, epsd, r, pr, c):
             np.minimum(va, vb, out=sv)
             np.add(va, sv, out=sv)
             num -= sv                                                # |y_a - y_b|^2 - (va + min)
-            np.add(va, vb, out=sv)
-            sv += epsd
+            np.add(va, ve_eps[(slice(None),) + sl], out=sv)         # va + vb + eps
             np.divide(num, sv, out=num)
             if c == 1:
                 dsum[...] = num[0]
@@ -631,12 +641,13 @@ def _center_patch_sums(ye, ve, inside, acc, cnt, epsd, r, pr, c):
                 np.add(num[0], num[1], out=dsum)
                 for ch in range(2, c):
                     dsum += num[ch]
-            dsum *= inv_c
-            np.minimum(dsum, D_CLIP, out=dsum)
+            np.minimum(dsum, clip, out=dsum)                         # C x the clipped mean
             if ok.all():
-                acc += dsum
+                part += dsum
             else:
-                np.add(acc, dsum, out=acc, where=ok)
+                np.add(part, dsum, out=part, where=ok)
+    part *= 1.0 / c
+    acc += part
 
 
 # ------------------------------------------------------------------------- Sobel

@@ -43,14 +43,14 @@ def gathered(y, v, cy, cx, r, pr, dtype):
 
 def direct_patch_sums(ye, ve, inside, eps, r, pr):
     """Eq. 4-5 patch sums at k = 1 by scalar loops (per centre, window pixel,
-    patch offset, channel), in the order of the vectorised code."""
+    patch offset, channel), in the order of the vectorised code: the clipped
+    channel sum min(sum_c d_c, C D_CLIP) summed over the patch, then / C."""
     c, N = ye.shape[:2]
     s = 2 * r + 1
     R = r + pr
     acc = np.zeros((N, s, s))
     cnt = np.zeros((N, s, s))
     t = ye.dtype.type
-    inv_c = t(1.0 / c)
     for n in range(N):
         for oy in range(s):
             for ox in range(s):
@@ -66,11 +66,11 @@ def direct_patch_sums(ye, ve, inside, eps, r, pr):
                             a, va = ye[ch, n, ai, aj], ve[ch, n, ai, aj]
                             b, vb = ye[ch, n, bi, bj], ve[ch, n, bi, bj]
                             nm = (a - b) * (a - b) - (va + min(va, vb))
-                            q = nm / t(t(va + vb) + eps)
+                            q = nm / t(va + t(vb + eps))
                             dsum = q if dsum is None else t(dsum + q)
-                        dsum = min(t(dsum * inv_c), t(D_CLIP))
+                        dsum = min(dsum, t(D_CLIP * c))
                         acc[n, oy, ox] += np.float64(dsum)
-    return acc, cnt
+    return acc * (1.0 / c), cnt
 
 
 @pytest.mark.parametrize("dtype", [np.float32, np.float64])
