@@ -428,6 +428,35 @@ def _guard_rows(buf, y0: int, y1: int):
     return var, known, sd
 
 
+def exact_pixels(buf, rows: int | None = None) -> np.ndarray:
+    """(H, W) bool: pixels whose samples show no noise at all, as the
+    consistency guard judges them: a variance estimate in every channel
+    (k >= 2 subsets, finite) and a standard error of zero after the guard's
+    3x3-median floor (its own subsets agree exactly, and so do most of its
+    neighbours': a flat background lit by a constant world).  The guard
+    sends any change at such a pixel back to the mean, so a method that
+    changes them (OIDN shifts a flat background by ~0.3 %) should keep them
+    itself; an isolated zero-variance pixel among noisy ones (subsets that
+    agreed by chance) is not exact.  Row bands on the controller's threads,
+    as the guard."""
+    h, w = buf.n.shape[:2]
+    out = np.zeros((h, w), bool)
+    rows = _band_rows(rows, w)
+
+    def judge(b):
+        y0, y1 = b
+        e0, e1 = max(0, y0 - 1), min(h, y1 + 1)
+        _, known, sd = _guard_rows(buf, e0, e1)
+        shp = (y1 - y0,) + sd.shape[1:]
+        med = _median_band(sd, _padded_rows(y0, y1, h, e0), _tmp("g_med", shp, sd.dtype))
+        np.maximum(sd[y0 - e0:y1 - e0], med, out=med)
+        ok = known[y0 - e0:y1 - e0].all(axis=-1)
+        np.logical_and(ok, (med == 0).all(axis=-1), out=out[y0:y1])
+
+    _bands(judge, h, w, rows)
+    return out
+
+
 def consistency_guard(result: MethodResult, buf, z: float = 3.0, rows: int | None = None) -> MethodResult:
     """Reject reconstructed pixels that contradict their own samples.
 

@@ -135,3 +135,31 @@ def test_guard_counts_float_rounding_apart_from_corrections():
     assert res.info["guard_rounding"] == 0.5
     clean = consistency_guard(MethodResult(buf.color.mean.copy() * 1.0, np.zeros(buf.shape)), buf, z=3.0)
     assert clean.info["guard_fraction"] == clean.info["guard_rounding"] == 0.0
+
+
+def test_exact_pixels_are_the_ones_the_guard_allows_no_change_at():
+    """exact_pixels marks what the guard judges with a zero standard error
+    (own subsets equal, 3x3-median floor zero): a flat noiseless block, not a
+    pixel whose subsets agreed by chance among noisy ones, not a pixel without
+    a variance estimate.  Any change there is reverted by the guard; a change
+    elsewhere within the noise is not."""
+    from core.method import exact_pixels
+    rng = np.random.default_rng(21)
+    h, w = 9, 12
+    subs = [1.0 + rng.normal(0, 0.1, (h, w, 3)) for _ in range(4)]
+    for s in subs:
+        s[:, :5] = 0.3                                         # noiseless background, columns 0-4
+    for s in subs[1:]:
+        s[6, 9] = subs[0][6, 9]                                # chance agreement among noisy pixels
+    buf = Buffers.from_subsets(subs, [2] * 4)
+    ex = exact_pixels(buf, rows=2)                             # several bands
+    assert ex[:, :4].all() and not ex[:, 6:].any()             # column 4's floor: its noisy neighbours
+    assert buf.variance_of_mean()[6, 9].max() == 0 and not ex[6, 9]
+    np.testing.assert_array_equal(ex, exact_pixels(buf))
+    img = buf.color.mean + 1e-3                                # a small shift everywhere
+    res = consistency_guard(MethodResult(img, np.zeros(buf.shape)), buf, z=3.0)
+    reverted = (res.image != img).any(-1)
+    assert (reverted[ex]).all()
+    assert not reverted[:, 6:].any()
+    one = Buffers.from_subsets([np.full((3, 3, 3), 0.5)], [4])  # k = 1: no variance estimate
+    assert not exact_pixels(one).any()

@@ -482,3 +482,26 @@ def test_the_loop_places_samples_by_the_map_estimate_and_ends_with_the_full_reco
     calls.clear()
     run.reconstruct()
     assert calls == ["accurate"] + ["fast"] * 3      # the image, then its error estimate
+
+
+def test_oidn_keeps_noiseless_pixels_at_their_mean_and_the_guard_finds_nothing_there(monkeypatch):
+    """A denoiser that shifts every pixel by 0.5 % (as OIDN does on a flat
+    background): the noiseless pixels come back exactly at their sample mean
+    with error 0, so the consistency guard has nothing to correct there; the
+    noisy ones keep the denoiser's output."""
+    from core.method import consistency_guard, exact_pixels
+    buf = _flat_aux_buffers(5, 12, 16, 0.4, 0.1)
+    for st in (buf.color,):                                    # the left 6 columns noiseless
+        st.mean[:, :6] = 0.25
+        st.m2[:, :6] = 0.0
+    buf.half = None                                            # recorrupted halves: no stored groups
+    monkeypatch.setattr(oidn, "oidn_filter", lambda c, a=None, n=None, **kw: 1.005 * np.asarray(c))
+    res = oidn.reconstruct(buf, oidn.Params(adaptive=False))
+    ex = exact_pixels(buf)
+    assert ex[:, :5].all() and not ex[:, 7:].any()
+    np.testing.assert_array_equal(res.image[ex], buf.color.mean[ex])
+    assert (res.error[ex] == 0).all() and res.info["exact_fraction"] == ex.mean()
+    np.testing.assert_allclose(res.image[:, 7:], 1.005 * buf.color.mean[:, 7:])
+    g = consistency_guard(res, buf)
+    np.testing.assert_array_equal(g.image[ex], res.image[ex])
+    assert g.info["guard_fraction"] == 0.0
