@@ -912,11 +912,11 @@ def hat_bias_variance(X, w, Y, y_prev, var_prev, ridge: float = 1e-3, pilot_var=
     # along n, not along a 3-long strided last axis (same operations)
     yp_ch = [y_prev[..., ch] for ch in range(C)] if lean else None
     for k in range(K):                                            # per-pixel terms per k
-        pz = X @ beta[:, k]                                       # (B, n, 2C)
         if lean:
+            pz = X @ beta[:, k, :, C:]                            # (B, n, C): H y_prev only
             bk = bias[:, k]                                       # mean_c (H y_prev - y_prev)^2
             for ch in range(C):
-                d = np.subtract(pz[..., C + ch], yp_ch[ch])
+                d = np.subtract(pz[..., ch], yp_ch[ch])
                 d *= d
                 if ch == 0:
                     bk[...] = d
@@ -924,6 +924,7 @@ def hat_bias_variance(X, w, Y, y_prev, var_prev, ridge: float = 1e-3, pilot_var=
                     bk += d
             bk /= C
         else:
+            pz = X @ beta[:, k]                                   # (B, n, 2C)
             b = np.subtract(pz[..., C:], y_prev, out=pz[..., C:])
             pred[:, k] = pz[..., :C]
             bias[:, k] = b
