@@ -462,6 +462,7 @@ def _nlm_strip(y, v, vk, vke, g, ginv, out, r, pr, inv2sr, sigma_s, mean_w, chan
     ea, eb = max(0, y0 - pr), min(h, y1 + pr)
     num = np.zeros((y1 - y0, w, c), dtype)
     den = np.zeros((y1 - y0, w, cw), dtype)
+    scales = {}                                 # 1 / pair counts of Eq. 4's mean, by rectangle
     for dy in range(-r, r + 1):
         ra, rb = max(ea, -dy), min(eb, h - dy)
         oa, ob = max(y0, ra), min(y1, rb)
@@ -499,7 +500,10 @@ def _nlm_strip(y, v, vk, vke, g, ginv, out, r, pr, inv2sr, sigma_s, mean_w, chan
             ps = _window_sums(buf, L, 0, oa - ra, ob - ra)
             ps = _window_sums(ps, L, 1, 0, Wc)
             # -max(P, 0) / (2 sigma_r^2) = min(P * scale, 0) with scale < 0
-            scale = (-inv2sr / np.outer(cnt_y, box_count(Wc, pr))).astype(dtype)
+            key = (oa - ra, ob - ra, R, Wc)                      # repeats across dy
+            scale = scales.get(key)
+            if scale is None:
+                scale = scales[key] = (-inv2sr / np.outer(cnt_y, box_count(Wc, pr))).astype(dtype)
             ps *= scale[..., None]
             np.minimum(ps, 0, out=ps)
             # spatial and joint-feature terms: one channel, shared by all
