@@ -1013,17 +1013,21 @@ def _design_rows(feat, idx, inside, cidx, width):
     """
     F = feat.reshape(-1, feat.shape[2])
     c, n = idx.shape
-    diff = np.empty((c, n, 2 + F.shape[1]))
+    out = np.empty((c, n, 3 + F.shape[1]))
+    out[..., 0] = 1.0
+    diff = out[..., 1:]                                     # written in place
     qy, qx = np.divmod(idx, width)
     cy, cx = np.divmod(cidx, width)
     diff[..., 0] = qx - cx[:, None]
     diff[..., 1] = qy - cy[:, None]
     diff[..., 2:] = F[idx]
     diff[..., 2:] -= F[cidx][:, None, :]
-    diff[~inside] = 0.0
+    np.copyto(diff, 0.0, where=~inside[..., None])
     s = np.abs(diff).max(axis=1, keepdims=True)
-    diff = np.where(s > 1e-12, diff / np.where(s > 1e-12, s, 1.0), 0.0)
-    return np.concatenate([np.ones((c, n, 1)), diff], axis=2)
+    ok = s > 1e-12
+    np.divide(diff, np.where(ok, s, 1.0), out=diff)
+    np.copyto(diff, 0.0, where=~ok)
+    return out
 
 
 @dataclass
