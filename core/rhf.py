@@ -1188,8 +1188,9 @@ def clamp_to_support(yk, wsel, Yq, min_weight: float):
     sel = (wsel >= min_weight)[..., None]
     lo = np.where(sel, Yq, np.inf).min(axis=1, keepdims=True)
     hi = np.where(sel, Yq, -np.inf).max(axis=1, keepdims=True)
-    ok = lo <= hi
-    return np.where(ok, np.clip(yk, np.where(ok, lo, 0.0), np.where(ok, hi, 0.0)), yk)
+    ok = lo <= hi                                # else no fitted pixel: no bounds
+    out = np.maximum(yk, np.where(ok, lo, -np.inf))
+    return np.minimum(out, np.where(ok, hi, np.inf), out=out)
 
 
 def predict_at_bandwidth(wk, X, beta, kk):
