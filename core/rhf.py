@@ -654,7 +654,11 @@ def _window_index(cy, cx, r, h, w):
     qy = cy[:, None] + oy[None, :]
     qx = cx[:, None] + ox[None, :]
     inside = (qy >= 0) & (qy < h) & (qx >= 0) & (qx < w)
-    return np.clip(qy, 0, h - 1) * w + np.clip(qx, 0, w - 1), inside
+    qy = np.minimum(np.maximum(qy, 0, out=qy), h - 1, out=qy)   # np.clip without its wrapper
+    qx = np.minimum(np.maximum(qx, 0, out=qx), w - 1, out=qx)
+    qy *= w
+    qy += qx
+    return qy, inside
 
 
 def _fill_centers(uncovered: np.ndarray, rm: int):
