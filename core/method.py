@@ -428,6 +428,19 @@ def _guard_rows(buf, y0: int, y1: int):
     return var, known, sd
 
 
+def _floored_sd(buf, y0: int, y1: int, h: int):
+    """Rows ``y0:y1`` of the guard's (known, standard error), the standard
+    error floored at the 3x3 median of its neighbours' (computed from one row
+    more on each side), so a pixel whose few subsets agreed by chance (e.g.
+    all missed a rare light path) is judged with its neighbourhood's noise
+    level, not with a near-zero one.  On this thread's scratch arrays."""
+    e0, e1 = max(0, y0 - 1), min(h, y1 + 1)
+    _, known, sd = _guard_rows(buf, e0, e1)
+    shp = (y1 - y0,) + sd.shape[1:]
+    med = _median_band(sd, _padded_rows(y0, y1, h, e0), _tmp("g_med", shp, sd.dtype))
+    return known[y0 - e0:y1 - e0], np.maximum(sd[y0 - e0:y1 - e0], med, out=med)
+
+
 def exact_pixels(buf, rows: int | None = None) -> np.ndarray:
     """(H, W) bool: pixels whose samples show no noise at all, as the
     consistency guard judges them: a variance estimate in every channel
@@ -444,14 +457,8 @@ def exact_pixels(buf, rows: int | None = None) -> np.ndarray:
     rows = _band_rows(rows, w)
 
     def judge(b):
-        y0, y1 = b
-        e0, e1 = max(0, y0 - 1), min(h, y1 + 1)
-        _, known, sd = _guard_rows(buf, e0, e1)
-        shp = (y1 - y0,) + sd.shape[1:]
-        med = _median_band(sd, _padded_rows(y0, y1, h, e0), _tmp("g_med", shp, sd.dtype))
-        np.maximum(sd[y0 - e0:y1 - e0], med, out=med)
-        ok = known[y0 - e0:y1 - e0].all(axis=-1)
-        np.logical_and(ok, (med == 0).all(axis=-1), out=out[y0:y1])
+        known, sd = _floored_sd(buf, b[0], b[1], h)
+        np.logical_and(known.all(axis=-1), (sd == 0).all(axis=-1), out=out[b[0]:b[1]])
 
     _bands(judge, h, w, rows)
     return out
@@ -508,15 +515,8 @@ def consistency_guard(result: MethodResult, buf, z: float = 3.0, rows: int | Non
 
     def judge(b):
         y0, y1 = b
-        e0, e1 = max(0, y0 - 1), min(h, y1 + 1)
-        _, known, sd = _guard_rows(buf, e0, e1)
-        # floor: the 3x3 median of the standard errors, so a pixel whose few
-        # subsets agreed by chance (e.g. all missed a rare light path) is judged
-        # with its neighbourhood's noise level, not with a near-zero one
-        shp = (y1 - y0,) + sd.shape[1:]
-        med = _median_band(sd, _padded_rows(y0, y1, h, e0), _tmp("g_med", shp, sd.dtype))
-        sd = np.maximum(sd[y0 - e0:y1 - e0], med, out=med)
-        known = known[y0 - e0:y1 - e0]
+        known, sd = _floored_sd(buf, y0, y1, h)
+        shp = sd.shape
         thr = t_quantile(z, np.maximum(buf.k[y0:y1] - 1.0, 1.0))[..., None]
         with np.errstate(invalid="ignore"):
             d = np.subtract(image[y0:y1], mean[y0:y1], out=_tmp("g_d", shp))
