@@ -491,9 +491,8 @@ def test_oidn_keeps_noiseless_pixels_at_their_mean_and_the_guard_finds_nothing_t
     noisy ones keep the denoiser's output."""
     from core.method import consistency_guard, exact_pixels
     buf = _flat_aux_buffers(5, 12, 16, 0.4, 0.1)
-    for st in (buf.color,):                                    # the left 6 columns noiseless
-        st.mean[:, :6] = 0.25
-        st.m2[:, :6] = 0.0
+    buf.color.mean[:, :6] = 0.25                               # the left 6 columns noiseless
+    buf.color.m2[:, :6] = 0.0
     buf.half = None                                            # recorrupted halves: no stored groups
     monkeypatch.setattr(oidn, "oidn_filter", lambda c, a=None, n=None, **kw: 1.005 * np.asarray(c))
     res = oidn.reconstruct(buf, oidn.Params(adaptive=False))
