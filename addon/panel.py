@@ -36,8 +36,8 @@ def param_groups(settings) -> list:
     current settings use: the method's, and the frame-range stage's."""
     keys = [settings.method]
     if settings.frame_range and settings.temporal != "none":
-        keys.append("reproject" if settings.temporal == "reproject" else "temporal")
-    titles = {"reproject": "Reprojection", "temporal": "LP Temporal"}
+        keys.append({"reproject": "reproject", "lp": "temporal", "blend": "history"}[settings.temporal])
+    titles = {"reproject": "Reprojection", "temporal": "LP Temporal", "history": "Frame Blend"}
     out = []
     for key in keys:
         cls = _param_classes.get(key)

@@ -124,7 +124,10 @@ class CYCLESADAPTIVE_PG_settings(bpy.types.PropertyGroup):
                                    "reprojection is valid (Schalk 2018): fewer samples per frame, "
                                    "slight bias on moving highlights"),
                                   ("lp", "LP temporal", "LP's regression over frames (Moon 2015 "
-                                   "Sec. 6; method LP): steadier animation, more memory")],
+                                   "Sec. 6; method LP): steadier animation, more memory"),
+                                  ("blend", "Blend", "Average each frame's result with the previous "
+                                   "frame's where they show the same surface and agree within their "
+                                   "estimated errors (any method): less flicker on static parts")],
                            description="How frames of a range reuse earlier samples")
     seed_mode: EnumProperty(name="Noise Pattern", default="auto",
                             items=[("auto", "Auto", "Fixed, or Animated with Reproject (measured: fixed "

@@ -41,7 +41,7 @@ REL_EPS = metrics.REL_EPS
 NONFINITE_TERM = 1e6
 DEFAULT_SCENES = ("animated", "courtyard")
 DEFAULT_METHODS = ("uniform", "var", "lp", "oidn")
-TEMPORAL_MODES = ("none", "reproject", "lp")
+TEMPORAL_MODES = ("none", "reproject", "lp", "blend")
 DEFAULT_OUT = os.path.join(refs.ROOT, "bench_out", "sequence")
 PEERS = ("cycles_uniform", "cycles_oidn", "cycles_adaptive+oidn")
 FORMULA = ("temporal error = mean over frames t = 2..T, pixels and RGB of "
@@ -294,9 +294,10 @@ def run_peers(scene, vl, budget: int, frames, seed: int, ref0, target_seconds, c
 
 def configurations(methods, temporals, seed_modes=("animated",)) -> list:
     """(method, temporal, seed mode) to run: ``lp`` temporal only with method
-    lp, ``reproject`` only with the animated seed (FramesJob refuses it fixed)."""
+    lp, ``reproject`` and ``blend`` only with the animated seed (FramesJob
+    refuses them fixed)."""
     return [(m, t, sm) for sm in seed_modes for m in methods for t in temporals
-            if (t != "lp" or m == "lp") and (t != "reproject" or sm == "animated")]
+            if (t != "lp" or m == "lp") and (t not in ("reproject", "blend") or sm == "animated")]
 
 
 def run_scene(name: str, cfg: dict, keep_images: bool = False, publish=None) -> dict:
@@ -467,7 +468,7 @@ def add_arguments(p) -> None:
     p.add_argument("--methods", default=",".join(DEFAULT_METHODS),
                    help=f"comma-separated methods (default {','.join(DEFAULT_METHODS)})")
     p.add_argument("--temporal", default=",".join(TEMPORAL_MODES),
-                   help="temporal modes to run (default none,reproject,lp; lp only with method lp)")
+                   help="temporal modes to run (default none,reproject,lp,blend; lp only with method lp)")
     p.add_argument("--budgets", default="8", help="comma-separated spp budgets (default 8)")
     p.add_argument("--frames", help="frame range for every scene, e.g. 1-8 (default: each file's range)")
     p.add_argument("--max-frames", type=int, default=0, help="use at most this many frames (0: all)")

@@ -24,7 +24,7 @@ METHODS = {
 }
 
 #: parameter groups that are not methods (frame ranges): name -> core module
-STAGES = {"reproject": "reproject", "temporal": "temporal"}
+STAGES = {"reproject": "reproject", "temporal": "temporal", "history": "history"}
 
 #: methods that reconstruct (usable by ``denoise``)
 DENOISERS = ("awr", "lp", "rhf", "oidn")

@@ -101,10 +101,12 @@ def build_parser(blender_command: bool = False, extra_commands=()) -> argparse.A
     r.add_argument("--frame", type=int, help="frame to render (default: the scene's current frame)")
     r.add_argument("--frames", help="frame range A-B (or A-B:STEP): one output per frame, OUT_####.exr "
                    "(a run of # in --out is replaced by the frame number)")
-    r.add_argument("--temporal", choices=["none", "reproject", "lp"], default="none",
+    r.add_argument("--temporal", choices=["none", "reproject", "lp", "blend"], default="none",
                    help="frame ranges: 'reproject' reuses the previous frame's samples where "
                         "reprojection is valid (Schalk 2018); 'lp' adds LP's temporal regression "
-                        "over frames (Moon 2015 Sec. 6, with --method lp)")
+                        "over frames (Moon 2015 Sec. 6, with --method lp); 'blend' averages each "
+                        "frame's result with the previous frame's, warped, where they show the same "
+                        "surface and agree within their estimated errors (any method)")
     r.add_argument("--seed-mode", choices=["auto", "animated", "fixed"], default="auto",
                    help="frame ranges: 'animated' gives frame F the seed SEED + F (independent noise per "
                         "frame, as Cycles' animated seed); 'fixed' renders every frame with SEED (the same "
@@ -367,7 +369,8 @@ def _render_frames(args, scene, layers, opts, cluster=None) -> int:
     out = os.path.abspath(args.out or ensure_output_folder(default_out_pattern(scene, args.method)))
     common = dict(reference_pattern=args.reference, temporal=args.temporal,
                   reproject_params=method_params(args, "reproject"),
-                  temporal_params=method_params(args, "temporal"), preview=not args.no_preview,
+                  temporal_params=method_params(args, "temporal"),
+                  history_params=method_params(args, "history"), preview=not args.no_preview,
                   exr_depth=args.exr_depth, exr_contents=args.exr_contents, seed_mode=args.seed_mode)
     flags = dict(skip_existing=args.skip_existing, resume=args.resume, overwrite=args.overwrite)
     vl = layers[0]

@@ -915,7 +915,7 @@ def render_chain(spec: dict, job: dict, runs: list) -> dict:
         return FramesJob(scene, vl, options, job["out_pattern"], frames,
                          reference_pattern=job["reference_pattern"], temporal=job["temporal"],
                          reproject_params=job["reproject_params"], temporal_params=job["temporal_params"],
-                         overwrite=job["overwrite"], resume=resume, preview=job["preview"],
+                         history_params=job.get("history_params", {}), overwrite=job["overwrite"], resume=resume, preview=job["preview"],
                          exr_depth=job.get("exr_depth", "scene"), exr_contents=job.get("exr_contents", "full"),
                          seed_mode=job.get("seed_mode", "auto"))
     for step in farm_job.drive([[farm_job.Run(tuple(r[0]), bool(r[1])) for r in runs]], make, codes, errors):
@@ -934,8 +934,8 @@ class FarmFramesJob:
 
     def __init__(self, farm: Farm, scene, view_layer, options, out_pattern: str, frames: list,
                  reference_pattern: str | None = None, temporal: str = "none", reproject_params=None,
-                 temporal_params=None, skip_existing: bool = False, overwrite: bool = False,
-                 resume: bool = False, preview: bool = True, chain_length: int | None = None,
+                 temporal_params=None, history_params=None, skip_existing: bool = False,
+                 overwrite: bool = False, resume: bool = False, preview: bool = True, chain_length: int | None = None,
                  exr_depth: str = "scene", exr_contents: str = "full", seed_mode: str = "auto"):
         from .job import frame_path
         self.farm, self.scene, self.view_layer = farm, scene, view_layer
@@ -951,7 +951,8 @@ class FarmFramesJob:
         self.job = {"options": options_dict(options), "out_pattern": self.out_pattern,
                     "reference_pattern": os.path.abspath(reference_pattern) if reference_pattern else None,
                     "temporal": temporal, "reproject_params": dict(reproject_params or {}),
-                    "temporal_params": dict(temporal_params or {}), "overwrite": bool(overwrite),
+                    "temporal_params": dict(temporal_params or {}),
+                    "history_params": dict(history_params or {}), "overwrite": bool(overwrite),
                     "preview": bool(preview), "exr_depth": exr_depth, "exr_contents": exr_contents,
                     "seed_mode": seed_mode}
         self.codes = {p.frame: farm_job.SKIPPED for p in self.plans if p.action == "skip"}

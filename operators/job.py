@@ -1208,15 +1208,20 @@ class FramesJob:
       2's (``core.var.REPROJECT``: not-reprojected pixels first);
     - ``"lp"``: LP's temporal extension (Moon 2015 Sec. 6, core/temporal.py):
       per-pixel lambda-weighted RLS over frames on top of each frame's LP
-      reconstruction (method must be ``lp``).
+      reconstruction (method must be ``lp``);
+    - ``"blend"``: each frame's reconstruction is averaged with the previous
+      frame's output, warped back, where both show the same surface and agree
+      within their estimated errors (core/history.py; any method).
+    ``history_params``: core.history.Params of ``blend``.
     """
 
-    MODES = ("none", "reproject", "lp")
+    MODES = ("none", "reproject", "lp", "blend")
     SEED_MODES = ("auto", "animated", "fixed")
 
     def __init__(self, scene, view_layer, options: Options, out_pattern: str, frames: list,
                  reference_pattern: str | None = None, temporal: str = "none",
                  reproject_params: dict | None = None, temporal_params: dict | None = None,
+                 history_params: dict | None = None,
                  view_layers=None, seed_mode: str = "auto", **job_kw):
         """``view_layers``: several view layers render each frame as a
         :class:`LayersJob` (default: ``[view_layer]``, a RenderJob)."""
@@ -1224,11 +1229,14 @@ class FramesJob:
             raise JobError(f"unknown temporal mode {temporal!r} (choose {', '.join(self.MODES)})")
         if seed_mode not in self.SEED_MODES:
             raise JobError(f"unknown seed mode {seed_mode!r} (choose {', '.join(self.SEED_MODES)})")
+        if seed_mode == "fixed" and temporal == "blend":
+            raise JobError("--temporal blend needs --seed-mode animated: it averages frames whose "
+                           "noise must be independent")
         if seed_mode == "fixed" and temporal == "reproject":
             raise JobError("--temporal reproject needs --seed-mode animated: with a fixed seed the "
                            "reused samples repeat the new frame's own")
         self.seed_mode = seed_mode if seed_mode != "auto" else \
-            ("animated" if temporal == "reproject" else "fixed")
+            ("animated" if temporal in ("reproject", "blend") else "fixed")
         self.view_layers = list(view_layers) if view_layers else [view_layer]
         if len(self.view_layers) > 1 and temporal != "none":
             raise JobError("--temporal works on one view layer: choose it with --view-layer")
@@ -1238,11 +1246,13 @@ class FramesJob:
         self.options, self.frames = options, list(frames)
         self.out_pattern, self.reference_pattern = out_pattern, reference_pattern
         self.temporal, self.job_kw = temporal, job_kw
-        from ..core import reproject, temporal as temporal_mod
+        from ..core import history, reproject, temporal as temporal_mod
         from ..core.method import params_from_dict
         self.reproject_params = reproject.resolve_noise_limited(
             params_from_dict(reproject.Params, reproject_params), options.method)
         self.temporal_params = params_from_dict(temporal_mod.Params, temporal_params)
+        self.history_params = history.resolve(params_from_dict(history.Params, history_params), options.method)
+        self._history = None  # core.history.History of the previous frame (blend)
         self.summaries: list = []
         self.job: RenderJob | None = None
         self._prev = None  # (buffers, camera dict, method state) of the previous frame
@@ -1269,6 +1279,8 @@ class FramesJob:
                     kw["method"] = var.REPROJECT
             elif self.temporal == "lp":
                 kw["reconstructor"] = self._lp_temporal
+            elif self.temporal == "blend":
+                kw["reconstructor"] = self._blend
             if len(self.view_layers) > 1:
                 self.job = LayersJob(self.scene, self.view_layers, opts, frame_path(self.out_pattern, f),
                                      reference=ref, **kw)
@@ -1345,6 +1357,25 @@ class FramesJob:
         if "center_fraction" in static.info:
             out.info["center_fraction"] = static.info["center_fraction"]
         return out
+
+    def _blend(self, run):
+        """Final reconstruction of a frame blended with the previous frame's
+        output (core/history.py)."""
+        from ..core import history, reproject
+        from ..core.method import MethodResult
+        static = run.method.reconstruct(run.buffers, run.params)
+        cam = reproject.Camera.from_render(self.job.camera)
+        coords = None
+        if self._prev is not None and self._history is not None:
+            prev_buf, prev_cam, _ = self._prev
+            coords = reproject.backward_coordinates(reproject.Camera.from_render(prev_cam), cam,
+                                                    run.buffers, self._history.shape)
+        res = history.blend(static.image, static.error, history.Surface.from_buffers(run.buffers),
+                            self._history, coords, cam.position, self.history_params)
+        self._history = res.history
+        info = dict(static.info)
+        info.update({f"blend_{k}": float(v) for k, v in res.info.items()})
+        return MethodResult(res.image, res.error, info, static.dimension)
 
     @property
     def run(self):

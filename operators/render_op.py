@@ -229,6 +229,7 @@ class CYCLESADAPTIVE_OT_render(bpy.types.Operator):
                              temporal=s.temporal, overwrite=s.overwrite,
                              reproject_params=method_params(s, "reproject"),
                              temporal_params=method_params(s, "temporal"),
+                             history_params=method_params(s, "history"),
                              view_layers=layers, compositor=s.use_compositor, exr_depth=s.exr_depth,
                              exr_contents=s.exr_contents, seed_mode=s.seed_mode)
         out = path or ensure_output_folder(default_out(scene, opts.method, scene.frame_current))

@@ -145,6 +145,16 @@ def test_advanced_adds_the_frame_range_stage_parameters(addon):
     assert drawn == [f.name for f in methods.param_fields("reproject")]
 
 
+def test_advanced_adds_the_blend_parameters(addon):
+    scene = _scene()
+    s = scene.cycles_adaptive
+    s.method, s.frame_range, s.temporal = "oidn", True, "blend"
+    lay = _draw(bpy.types.CYCLESADAPTIVE_PT_advanced, scene)
+    assert "Frame Blend" in lay.labels()
+    drawn = [e[2] for e in lay.log if e[0] == "prop" and e[1] == s.params_history]
+    assert drawn == [f.name for f in methods.param_fields("history")]
+
+
 def test_labels_come_from_the_field_metadata():
     from cycles_adaptive.addon.props import _label
     f = {x.name: x for x in fields(methods.get("oidn").Params)}["quality"]

@@ -1,0 +1,292 @@
+"""Temporal accumulation of reconstructed frames (``--temporal blend``).
+
+What and why: every method ends a frame with an image ``D_t`` and an estimated
+per-pixel squared error ``E_t``.  With independent noise per frame (the
+animated seed), the previous frame's output, warped into this frame where it
+shows the same surface, is a second estimate of the pixel; combining the two
+by their errors lowers both the per-frame error and the flicker.  This is the
+temporal accumulation of real-time denoisers (Schied et al. 2017, SVGF: a
+bilinear reprojection with depth / normal / object tests per tap and an
+exponential moving average), with the fixed blend factor replaced by the
+weights our error estimates give, and a change test that keeps moving
+highlights and shadows from smearing.
+
+Per frame (:func:`blend`):
+
+1. :func:`warp` the history (previous output, its error, its length in frames)
+   to the backward coordinates (``core.reproject.backward_coordinates``):
+   bilinear over the four previous pixels around the point, each tap kept only
+   where it is the same surface as the current pixel (both background, or
+   positions within ``tolerance * distance + pixels * footprint``, normals within
+   ``normal_cos``, the same object index) and renormalised over the kept taps;
+   a pixel whose kept taps weigh less than ``min_tap_weight`` has no history.
+2. Change test: with ``d^2`` the RGB mean of ``(D - W)^2``, the history is
+   dropped where ``d^2 > z^2 (E~ + e~)``, ``E~`` / ``e~`` the errors pooled over a
+   ``(2 pool_radius + 1)^2`` window (the per-pixel estimates are too noisy to
+   threshold alone; docs/notes/oidn.md).
+3. Bias of the history: ``b^2 = max(d~^2 - E~ - e~, 0)``, ``d~^2`` the squared
+   difference averaged over a ``(2 bias_radius + 1)^2`` window, is what the
+   warped history adds beyond both errors (bilinear resampling of a panning
+   camera's frame, view-dependent change below the test); it is added to the
+   history's error.  Without it the history was weighted as if exact where
+   resampling blurred it (measured: the warped 1024-spp reference of the
+   previous frame is as far from this frame's reference as OIDN's own error).
+4. Weights: the current frame's weight ``w = e~ / (E~ + e~)`` (inverse-variance),
+   at least ``1 / max_frames``, so no history outweighs the last
+   ``max_frames`` frames (with exact and equal per-frame errors the weight is
+   ``1 / (n + 1)`` after n frames, the running mean).  Output ``w D + (1 - w) W``.
+5. Error of the output: ``w^2 E + (1 - w)^2 (e + b^2)``, assuming the two errors
+   independent.  Choice: the bias part of a denoiser's error (blur) is shared
+   between frames and does not average; ``max_frames`` bounds what this
+   underestimate can do, and the benchmark reports the estimate's correlation
+   with the true error as for every method.
+
+A frame where fewer than ``min_valid_fraction`` of the pixels find a history
+(a camera cut) starts over everywhere.  Non-finite pixels of the current image
+take the history where it is valid and 0 otherwise, with an infinite error
+replaced by the largest finite one; the output is always finite.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from .buffers import Buffers, is_background
+from .filters import box_mean_finite
+from .method import param
+
+
+@dataclass(frozen=True)
+class Params:
+    """Blend settings (module docstring)."""
+
+    z: float = param(3.0, "change test: the previous frame's output is dropped where it differs from this "
+                     "frame's by more than this many (pooled) standard errors of the difference; smaller "
+                     "reacts faster to moving light, larger reuses more", 0.0, 100.0, label="Change Test (sigma)")
+    max_frames: int = param(8, "longest history, in frames: this frame keeps at least 1/max_frames of the "
+                            "weight; larger averages more frames on static parts, smaller follows change "
+                            "sooner", 1, 1024, label="Max History (frames)")
+    pool_radius: int = param(-1, "radius of the window over which both error estimates are averaged before "
+                             "the change test and the weights; 0 = per pixel; -1 = auto: 3 for methods whose "
+                             "image is the sample mean (uniform, var: their per-pixel variance has few degrees "
+                             "of freedom), 0 for denoisers (their error maps are pooled already)", -1, 16,
+                             label="Error Pooling")
+    bias_radius: int = param(-1, "radius of the window over which the squared difference between this frame "
+                             "and the history is averaged to estimate what the history adds beyond both "
+                             "errors (resampling blur, slow change); 0 = per pixel; -1 = auto: 1 for the "
+                             "sample mean (uniform, var), 0 for denoisers", -1, 16, label="Bias Window")
+    tolerance: float = param(0.01, "same-surface test: largest position difference between a previous pixel "
+                             "and this one, as a fraction of the camera distance", 0.0, 1.0,
+                             label="Position Tolerance")
+    pixels: float = param(1.0, "same-surface test slack in pixel footprints (sub-pixel offsets on slanted "
+                          "surfaces)", 0.0, 16.0, label="Position Slack (px)")
+    normal_cos: float = param(0.9, "same-surface test: smallest cosine between the previous and the current "
+                              "normal; 0 disables", -1.0, 1.0, label="Normal Agreement")
+    object_tolerance: float = param(1e-3, "largest object index change still counted as the same object",
+                                    0.0, 1.0, label="Object Index Tolerance")
+    min_tap_weight: float = param(0.25, "a pixel keeps its history only if the bilinear weights of its "
+                                  "same-surface taps sum to at least this", 0.0, 1.0, label="Min Tap Weight")
+    min_valid_fraction: float = param(0.01, "below this share of pixels with a history the frame counts as "
+                                      "a camera cut and starts over", 0.0, 1.0, label="Min History Share")
+
+
+#: methods whose image is the sample mean: their errors are pooled before use (``resolve``)
+SAMPLE_MEAN_METHODS = ("uniform", "var")
+
+
+def resolve(params: Params, method: str | None) -> Params:
+    """``params`` with the auto (-1) radii set for ``method``: pooled (3, 1) for
+    the sample mean, per pixel (0, 0) for denoisers and for ``None``.
+    Measured on the animated scene (docs/notes/flicker.md): uniform gains
+    0.66x relMSE with (3, 1) against 0.78x with (0, 0); oidn 0.96x with
+    (0, 0) against 1.0x with (3, 1)."""
+    import dataclasses
+    pooled = method in SAMPLE_MEAN_METHODS
+    return dataclasses.replace(
+        params, pool_radius=params.pool_radius if params.pool_radius >= 0 else (3 if pooled else 0),
+        bias_radius=params.bias_radius if params.bias_radius >= 0 else (1 if pooled else 0))
+
+
+@dataclass
+class Surface:
+    """What the same-surface test compares, per pixel: world position (H, W, 3),
+    background mask (H, W), unit normal (H, W, 3) or None, object index (H, W)
+    or None, and the footprint (H, W): world distance to the nearest neighbour
+    hit (a pixel's size on its surface)."""
+
+    position: np.ndarray
+    background: np.ndarray
+    normal: np.ndarray | None
+    object_index: np.ndarray | None
+    footprint: np.ndarray
+
+    @classmethod
+    def from_buffers(cls, buf: Buffers) -> "Surface":
+        """The Surface of a frame's buffers (needs the ``position`` feature)."""
+        if "position" not in buf.features:
+            raise ValueError("temporal blend needs the Position pass")
+        pos = np.asarray(buf.features["position"].mean, np.float64)
+        depth = buf.features["depth"].mean if "depth" in buf.features else None
+        finite = np.all(np.isfinite(pos), axis=-1)
+        pos = np.where(finite[..., None], pos, np.nan)
+        bg = is_background(np.nan_to_num(pos, nan=1.0), depth) & finite
+        normal = None
+        if "normal" in buf.features:
+            n = np.asarray(buf.features["normal"].mean, np.float64)
+            length = np.linalg.norm(n, axis=-1, keepdims=True)
+            with np.errstate(invalid="ignore", divide="ignore"):
+                normal = np.where(length > 1e-6, n / np.where(length > 1e-6, length, 1.0), np.nan)
+        oi = buf.features["object_index"].mean[..., 0].astype(np.float64) if "object_index" in buf.features \
+            else None
+        return cls(pos, bg, normal, oi, footprint(pos, bg))
+
+
+def footprint(pos: np.ndarray, background: np.ndarray) -> np.ndarray:
+    """(H, W) world distance from each surface pixel to its nearest surface
+    neighbour (4-neighbourhood): the pixel's size on its surface.  The
+    nearest, so that at a silhouette the other side does not count; NaN
+    where no neighbour is a surface hit."""
+    h, w = background.shape
+    surf = np.where((~background)[..., None], pos, np.nan)
+    best = np.full((h, w), np.inf)
+    for axis in (0, 1):
+        d = np.linalg.norm(np.diff(surf, axis=axis), axis=-1)  # NaN where either side is not a surface
+        d = np.where(np.isfinite(d), d, np.inf)
+        if axis == 0:
+            best[1:] = np.minimum(best[1:], d)
+            best[:-1] = np.minimum(best[:-1], d)
+        else:
+            best[:, 1:] = np.minimum(best[:, 1:], d)
+            best[:, :-1] = np.minimum(best[:, :-1], d)
+    return np.where(np.isfinite(best), best, np.nan)
+
+
+@dataclass
+class History:
+    """The carried state: the last output (H, W, 3), its error (H, W), how many
+    frames it averages (H, W), and the Surface of its frame."""
+
+    image: np.ndarray
+    error: np.ndarray
+    length: np.ndarray
+    surface: Surface
+
+    @property
+    def shape(self):
+        return self.error.shape
+
+
+@dataclass
+class Result:
+    image: np.ndarray
+    error: np.ndarray
+    history: History
+    info: dict
+
+
+def warp(history: History, coords: np.ndarray, current: Surface, camera_position, params: Params):
+    """The history at each current pixel: (image (H, W, 3), error (H, W), length
+    (H, W), valid (H, W) bool).  ``coords`` (H, W, 2) continuous (row, col) in
+    the previous frame (NaN: none), ``camera_position`` (3,) this frame's
+    camera (the distance of the tolerance)."""
+    h, w = current.background.shape
+    hp, wp = history.shape
+    r = coords[..., 0] - 0.5
+    c = coords[..., 1] - 0.5
+    has = np.isfinite(r) & np.isfinite(c)
+    r = np.where(has, r, 0.0)
+    c = np.where(has, c, 0.0)
+    r0, c0 = np.floor(r).astype(np.int64), np.floor(c).astype(np.int64)
+    fr, fc = r - r0, c - c0
+    dist = np.linalg.norm(current.position - np.asarray(camera_position, np.float64), axis=-1)
+    tol = params.tolerance * dist + params.pixels * np.nan_to_num(current.footprint, nan=0.0)
+    img = np.zeros((h, w, 3))
+    err = np.zeros((h, w))
+    length = np.zeros((h, w))
+    wsum = np.zeros((h, w))
+    prev = history.surface
+    for dr, dc in ((0, 0), (0, 1), (1, 0), (1, 1)):
+        rr, cc = r0 + dr, c0 + dc
+        bw = (fr if dr else 1.0 - fr) * (fc if dc else 1.0 - fc)
+        ok = has & (rr >= 0) & (rr < hp) & (cc >= 0) & (cc < wp) & (bw > 0)
+        ri, ci = np.clip(rr, 0, max(hp - 1, 0)), np.clip(cc, 0, max(wp - 1, 0))
+        pbg = prev.background[ri, ci]
+        with np.errstate(invalid="ignore"):
+            near = np.linalg.norm(prev.position[ri, ci] - current.position, axis=-1) <= tol
+            same = np.where(current.background, pbg, ~pbg & ~current.background & near)
+            if params.normal_cos > -1.0 and prev.normal is not None and current.normal is not None:
+                cos = np.sum(prev.normal[ri, ci] * current.normal, axis=-1)
+                same &= current.background | (cos >= params.normal_cos)
+            if prev.object_index is not None and current.object_index is not None:
+                same &= np.abs(prev.object_index[ri, ci] - current.object_index) <= params.object_tolerance
+        hv = history.image[ri, ci]
+        he = history.error[ri, ci]
+        ok &= same & np.all(np.isfinite(hv), axis=-1) & np.isfinite(he)
+        wt = np.where(ok, bw, 0.0)
+        img += wt[..., None] * np.where(ok[..., None], hv, 0.0)
+        err += wt * np.where(ok, he, 0.0)
+        length += wt * np.where(ok, history.length[ri, ci], 0.0)
+        wsum += wt
+    valid = wsum >= max(params.min_tap_weight, 1e-12)
+    inv = np.where(valid, 1.0 / np.where(valid, wsum, 1.0), 0.0)
+    return img * inv[..., None], err * inv, length * inv, valid
+
+
+def blend(image: np.ndarray, error: np.ndarray, current: Surface, history: History | None,
+          coords: np.ndarray | None, camera_position, params: Params | None = None) -> Result:
+    """This frame's output from its reconstruction (``image`` (H, W, 3), its
+    ``error`` (H, W)) and the previous frame's ``history`` warped by ``coords``
+    (module docstring, steps 1-5).  ``history`` None: the first frame."""
+    params = resolve(params or Params(), None)
+    image = np.asarray(image, np.float64)
+    error = np.asarray(error, np.float64)
+    h, w = error.shape
+    bad = ~(np.all(np.isfinite(image), axis=-1) & np.isfinite(error))
+    finite_err = error[np.isfinite(error)]
+    big = float(finite_err.max()) if finite_err.size else 1.0
+    D = np.where(bad[..., None], 0.0, image)
+    E = np.where(bad, max(big, 1.0), np.maximum(error, 0.0))
+    info = {"history_fraction": 0.0, "changed_fraction": 0.0, "cut": False, "history_weight": 0.0}
+    if history is None or coords is None or h * w == 0:
+        out = _result(D, E, np.ones((h, w)), current, info)
+        return out
+    W, e, L, valid = warp(history, np.asarray(coords, np.float64), current, camera_position, params)
+    e = np.maximum(e, 0.0)
+    if valid.mean() < params.min_valid_fraction:
+        info["cut"] = True
+        return _result(D, E, np.ones((h, w)), current, info)
+    r = params.pool_radius
+    Ep = box_mean_finite(np.where(bad, np.nan, E), r) if r > 0 else E
+    ep = box_mean_finite(np.where(valid, e, np.nan), r) if r > 0 else e
+    Ep = np.where(np.isfinite(Ep), Ep, E)
+    ep = np.where(np.isfinite(ep), ep, e)
+    d2 = np.mean((D - W) ** 2, axis=-1)
+    changed = valid & ~bad & (d2 > params.z ** 2 * (Ep + ep))
+    use = valid & ~changed
+    if params.bias_radius > 0:
+        d2p = box_mean_finite(np.where(use, d2, np.nan), params.bias_radius)
+        d2p = np.where(np.isfinite(d2p), d2p, d2)
+    else:
+        d2p = d2
+    bias2 = np.maximum(d2p - Ep - ep, 0.0)   # what the history adds beyond both errors: resampling, change
+    ep = ep + bias2
+    e = e + bias2
+    with np.errstate(invalid="ignore", divide="ignore"):
+        wc = np.where(Ep + ep > 0, ep / np.where(Ep + ep > 0, Ep + ep, 1.0), 0.5)
+    wc = np.clip(wc, 1.0 / params.max_frames, 1.0)
+    wc = np.where(bad, 0.0, wc)
+    wc = np.where(use, wc, 1.0)
+    out_img = wc[..., None] * D + (1.0 - wc[..., None]) * np.where(use[..., None], W, 0.0)
+    out_err = wc ** 2 * E + (1.0 - wc) ** 2 * np.where(use, e, 0.0)
+    out_err = np.where(bad & ~use, max(big, 1.0), out_err)
+    length = np.where(use, np.minimum(L, params.max_frames - 1) + 1.0, 1.0)
+    info.update(history_fraction=float(use.mean()), changed_fraction=float(changed.mean()),
+                history_weight=float(np.mean(1.0 - wc)))
+    return _result(out_img, out_err, length, current, info)
+
+
+def _result(image, error, length, surface, info) -> Result:
+    image = np.nan_to_num(image, nan=0.0, posinf=0.0, neginf=0.0)
+    error = np.nan_to_num(error, nan=0.0, posinf=np.finfo(np.float64).max, neginf=0.0)
+    return Result(image, error, History(image, error, length, surface), info)

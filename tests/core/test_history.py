@@ -1,0 +1,226 @@
+"""Temporal blend of reconstructed frames (core/history.py)."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from core import history as hi
+from core.buffers import Buffers
+
+H, W = 24, 32
+CAM = np.array([0.0, 0.0, 20.0])
+PIX = 0.01
+
+
+def plane(shift=(0.0, 0.0), h=H, w=W, z=0.0):
+    """A plane z = const seen from above: pixel (r, c) with image shift (sy, sx)
+    shows the world point PIX * (c + 0.5 - sx, r + 0.5 - sy, z)."""
+    r, c = np.mgrid[0:h, 0:w].astype(np.float64)
+    pos = np.stack([PIX * (c + 0.5 - shift[1]), PIX * (r + 0.5 - shift[0]), np.full_like(r, z)], -1)
+    normal = np.broadcast_to(np.array([0.0, 0.0, 1.0]), (h, w, 3)).copy()
+    bg = np.zeros((h, w), bool)
+    return hi.Surface(pos, bg, normal, None, hi.footprint(pos, bg))
+
+
+def identity(h=H, w=W, shift=(0.0, 0.0)):
+    """Backward coordinates of a pure image translation: current pixel (r, c)
+    was at (r + 0.5 - sy, c + 0.5 - sx) in the previous frame."""
+    r, c = np.mgrid[0:h, 0:w].astype(np.float64)
+    return np.stack([r + 0.5 - shift[0], c + 0.5 - shift[1]], -1)
+
+
+def noisy(truth, sd, rng):
+    return truth + sd * rng.standard_normal(truth.shape)
+
+
+def run_sequence(truth, sd, frames, params, rng, surface=None):
+    surface = surface or plane()
+    state, out = None, []
+    for _ in range(frames):
+        img = noisy(truth, sd, rng)
+        res = hi.blend(img, np.full(truth.shape[:2], sd ** 2), surface, state, identity(), CAM, params)
+        state = res.history
+        out.append(res)
+    return out
+
+
+def test_first_frame_is_the_reconstruction():
+    rng = np.random.default_rng(0)
+    img = rng.random((H, W, 3))
+    err = rng.random((H, W))
+    res = hi.blend(img, err, plane(), None, None, CAM)
+    np.testing.assert_array_equal(res.image, img)
+    np.testing.assert_array_equal(res.error, err)
+    np.testing.assert_array_equal(res.history.length, 1.0)
+
+
+def test_two_frames_with_equal_errors_give_their_mean():
+    rng = np.random.default_rng(1)
+    a, b = rng.random((H, W, 3)), rng.random((H, W, 3))
+    err = np.full((H, W), 1.0)  # large: the change test passes everywhere
+    first = hi.blend(a, err, plane(), None, None, CAM)
+    second = hi.blend(b, err, plane(), first.history, identity(), CAM)
+    np.testing.assert_allclose(second.image, (a + b) / 2, rtol=0, atol=1e-12)
+    np.testing.assert_allclose(second.error, 0.5, rtol=0, atol=1e-12)  # (1/4 + 1/4) * 1
+    assert second.info["history_fraction"] == 1.0
+
+
+def test_static_sequence_error_falls_like_the_running_mean_and_the_estimate_follows():
+    """Independent noise, exact per-frame errors: after n frames the output is
+    the running mean of min(n, max_frames) frames (error sd^2 / n), measured
+    over pixels, and the reported error says so.  (A wide bias window: with
+    many degrees of freedom the bias estimate of pure noise is ~0.)"""
+    rng = np.random.default_rng(2)
+    truth = np.full((H, W, 3), 0.5)
+    sd = 0.05
+    out = run_sequence(truth, sd, 6, hi.Params(max_frames=8, pool_radius=3, bias_radius=8), rng)
+    mse = [float(np.mean((r.image - truth) ** 2)) for r in out]
+    for n in range(1, 7):
+        assert mse[n - 1] == pytest.approx(sd ** 2 / n, rel=0.25)
+        assert 0.98 <= float(np.mean(out[n - 1].error)) / (sd ** 2 / n) <= 1.2  # conservative, bounded
+    assert all(b < a for a, b in zip(mse, mse[1:]))
+
+
+@pytest.mark.parametrize("method", ["uniform", "oidn"])
+def test_the_bias_estimate_of_pure_noise_is_conservative(method):
+    """With the auto windows (small), the bias estimated from pure noise is
+    positive on some pixels: the reported error stays at or above the true
+    one, and the output still beats the frame alone."""
+    rng = np.random.default_rng(7)
+    truth = np.full((H, W, 3), 0.5)
+    sd = 0.05
+    out = run_sequence(truth, sd, 4, hi.resolve(hi.Params(), method), rng)
+    for n, res in enumerate(out, 1):
+        true = float(np.mean((res.image - truth) ** 2))
+        assert float(np.mean(res.error)) >= 0.9 * true
+        if n > 1:
+            assert true < 0.75 * sd ** 2
+
+
+def test_max_frames_bounds_the_history():
+    rng = np.random.default_rng(3)
+    truth = np.full((H, W, 3), 0.5)
+    sd = 0.05
+    out = run_sequence(truth, sd, 12, hi.Params(max_frames=3, pool_radius=3, bias_radius=8), rng)
+    # the weight of the current frame never drops below 1/3: error at least that of an EMA with alpha 1/3
+    ema = (1 / 3) ** 2 / (1 - (2 / 3) ** 2) * sd ** 2  # 0.2 sd^2
+    assert float(np.mean(out[-1].error)) == pytest.approx(ema, rel=0.06)
+    assert float(np.mean((out[-1].image - truth) ** 2)) == pytest.approx(ema, rel=0.3)
+    one = run_sequence(truth, sd, 3, hi.Params(max_frames=1), np.random.default_rng(3))
+    np.testing.assert_array_equal(one[-1].history.length, 1.0)
+    assert one[-1].info["history_weight"] == 0.0
+
+
+def test_a_change_beyond_the_errors_drops_the_history_there():
+    """A highlight that moves: where the new frame differs by 10 sigma, the
+    output is the new frame's own, exactly; elsewhere the history is used."""
+    rng = np.random.default_rng(4)
+    sd = 0.01
+    truth0 = np.full((H, W, 3), 0.5)
+    truth1 = truth0.copy()
+    truth1[8:16, 10:20] += 10 * sd * np.sqrt(2) * 3
+    err = np.full((H, W), sd ** 2)
+    first = hi.blend(noisy(truth0, sd, rng), err, plane(), None, None, CAM, hi.Params(pool_radius=0))
+    cur = noisy(truth1, sd, rng)
+    second = hi.blend(cur, err, plane(), first.history, identity(), CAM, hi.Params(pool_radius=0))
+    np.testing.assert_array_equal(second.image[8:16, 10:20], cur[8:16, 10:20])
+    assert second.info["changed_fraction"] >= 80 / (H * W)
+    outside = np.ones((H, W), bool)
+    outside[8:16, 10:20] = False
+    assert np.mean(second.history.length[outside] == 2.0) > 0.99
+
+
+def test_another_surface_is_never_blended():
+    """Disocclusion: where the previous frame saw a surface 1 unit closer (an
+    occluder that moved away), the history is not used, even if it agrees."""
+    rng = np.random.default_rng(5)
+    img = np.full((H, W, 3), 0.5)
+    err = np.full((H, W), 1.0)
+    prev_surface = plane()
+    prev_surface.position[:, :12, 2] = 1.0
+    first = hi.blend(img, err, prev_surface, None, None, CAM)
+    cur = noisy(img, 0.1, rng)
+    second = hi.blend(cur, err, plane(), first.history, identity(), CAM)
+    np.testing.assert_array_equal(second.image[:, :11], cur[:, :11])  # col 11 has one tap on the plane
+    assert np.all(second.history.length[:, 13:] == 2.0)
+
+
+def test_normals_and_object_ids_separate_surfaces():
+    img = np.full((H, W, 3), 0.5)
+    err = np.full((H, W), 1.0)
+    prev = plane()
+    prev.normal[:, :8] = [1.0, 0.0, 0.0]
+    prev.object_index = np.zeros((H, W))
+    prev.object_index[:, 24:] = 3.0
+    first = hi.blend(img, err, prev, None, None, CAM)
+    cur = plane()
+    cur.object_index = np.zeros((H, W))
+    second = hi.blend(img + 0.1, err, cur, first.history, identity(), CAM)
+    assert np.all(second.history.length[:, :8] == 1.0)
+    assert np.all(second.history.length[:, 24:] == 1.0)
+    assert np.all(second.history.length[:, 8:24] == 2.0)
+
+
+def test_warp_is_bilinear_on_a_translated_plane():
+    """History linear in the previous frame's pixel coordinates, camera moved
+    by a fractional shift: the warped value is that linear function at the
+    shifted point (closed form), away from the border."""
+    r, c = np.mgrid[0:H, 0:W].astype(np.float64)
+    lin = np.stack([0.01 * r + 0.02 * c, 0.03 * r, 0.5 + 0.0 * r], -1)
+    shift = (0.3, -0.6)
+    prev = plane()
+    hist = hi.History(lin, np.full((H, W), 0.1), np.ones((H, W)), prev)
+    cur = plane(shift)
+    W_, e, L, valid = hi.warp(hist, identity(shift=shift), cur, CAM, hi.Params())
+    inner = (slice(2, H - 2), slice(2, W - 2))
+    rr, cc = r - shift[0], c - shift[1]
+    expect = np.stack([0.01 * rr + 0.02 * cc, 0.03 * rr, 0.5 + 0.0 * rr], -1)
+    assert valid[inner].all()
+    np.testing.assert_allclose(W_[inner], expect[inner], atol=1e-12)
+    np.testing.assert_allclose(e[inner], 0.1, atol=1e-12)
+
+
+def test_camera_cut_starts_over():
+    img = np.full((H, W, 3), 0.5)
+    err = np.full((H, W), 1.0)
+    first = hi.blend(img, err, plane(), None, None, CAM)
+    cur = img + 0.01
+    res = hi.blend(cur, err, plane(), first.history, np.full((H, W, 2), np.nan), CAM)
+    np.testing.assert_array_equal(res.image, cur)
+    assert res.info["cut"]
+    far = hi.blend(cur, err, plane(z=5.0), first.history, identity(), CAM)  # every tap another surface
+    assert far.info["cut"]
+    np.testing.assert_array_equal(far.image, cur)
+
+
+def test_hostile_input_gives_finite_output():
+    rng = np.random.default_rng(6)
+    img = rng.random((H, W, 3))
+    img[0, 0] = np.nan
+    img[1, 1] = np.inf
+    err = rng.random((H, W))
+    err[2, 2] = np.nan
+    err[3, 3] = np.inf
+    first = hi.blend(img, err, plane(), None, None, CAM)
+    assert np.all(np.isfinite(first.image)) and np.all(np.isfinite(first.error))
+    coords = identity()
+    coords[4, 4] = [np.inf, 1.0]
+    coords[5, 5] = [-100.0, 1e9]
+    second = hi.blend(img, err, plane(), first.history, coords, CAM)
+    assert np.all(np.isfinite(second.image)) and np.all(np.isfinite(second.error))
+    assert np.all(second.error >= 0)
+    empty = hi.blend(np.zeros((0, 0, 3)), np.zeros((0, 0)), plane(h=0, w=0), None, None, CAM)
+    assert empty.image.shape == (0, 0, 3)
+
+
+def test_surface_from_buffers_reads_the_passes_and_refuses_without_position():
+    pos = plane().position
+    feats = {"position": pos, "normal": 2.0 * plane().normal, "object_index": np.zeros((H, W, 1))}
+    buf = Buffers.from_subsets([np.full((H, W, 3), 0.5)] * 2, [2, 2], [feats] * 2)
+    s = hi.Surface.from_buffers(buf)
+    np.testing.assert_allclose(s.normal[..., 2], 1.0)
+    np.testing.assert_allclose(s.footprint, PIX)
+    assert not s.background.any()
+    bare = Buffers.from_subsets([np.full((H, W, 3), 0.5)] * 2, [2, 2], [{}] * 2)
+    with pytest.raises(ValueError, match="Position"):
+        hi.Surface.from_buffers(bare)
