@@ -135,24 +135,16 @@ def test_advanced_lists_the_other_loop_settings_and_every_method_parameter_with_
     assert loop == [f.name for f in option_fields("ui") if f.name not in ("spp", "max_seconds")]
 
 
-def test_advanced_adds_the_frame_range_stage_parameters(addon):
+@pytest.mark.parametrize("method, temporal, title, stage", [("var", "reproject", "Reprojection", "reproject"),
+                                                          ("oidn", "blend", "Frame Blend", "history")])
+def test_advanced_adds_the_frame_range_stage_parameters(addon, method, temporal, title, stage):
     scene = _scene()
     s = scene.cycles_adaptive
-    s.method, s.frame_range, s.temporal = "var", True, "reproject"
+    s.method, s.frame_range, s.temporal = method, True, temporal
     lay = _draw(bpy.types.CYCLESADAPTIVE_PT_advanced, scene)
-    assert "Reprojection" in lay.labels()
-    drawn = [e[2] for e in lay.log if e[0] == "prop" and e[1] == s.params_reproject]
-    assert drawn == [f.name for f in methods.param_fields("reproject")]
-
-
-def test_advanced_adds_the_blend_parameters(addon):
-    scene = _scene()
-    s = scene.cycles_adaptive
-    s.method, s.frame_range, s.temporal = "oidn", True, "blend"
-    lay = _draw(bpy.types.CYCLESADAPTIVE_PT_advanced, scene)
-    assert "Frame Blend" in lay.labels()
-    drawn = [e[2] for e in lay.log if e[0] == "prop" and e[1] == s.params_history]
-    assert drawn == [f.name for f in methods.param_fields("history")]
+    assert title in lay.labels()
+    drawn = [e[2] for e in lay.log if e[0] == "prop" and e[1] == getattr(s, f"params_{stage}")]
+    assert drawn == [f.name for f in methods.param_fields(stage)]
 
 
 def test_labels_come_from_the_field_metadata():
