@@ -249,8 +249,7 @@ def blend(image: np.ndarray, error: np.ndarray, current: Surface, history: Histo
     E = np.where(bad, max(big, 1.0), np.maximum(error, 0.0))
     info = {"history_fraction": 0.0, "changed_fraction": 0.0, "cut": False, "history_weight": 0.0}
     if history is None or coords is None or h * w == 0:
-        out = _result(D, E, np.ones((h, w)), current, info)
-        return out
+        return _result(D, E, np.ones((h, w)), current, info)
     W, e, L, valid = warp(history, np.asarray(coords, np.float64), current, camera_position, params)
     e = np.maximum(e, 0.0)
     if valid.mean() < params.min_valid_fraction:

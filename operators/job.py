@@ -1217,6 +1217,9 @@ class FramesJob:
 
     MODES = ("none", "reproject", "lp", "blend")
     SEED_MODES = ("auto", "animated", "fixed")
+    #: modes refused with a fixed seed, and why (``auto`` gives them the animated seed)
+    NEEDS_ANIMATED_SEED = {"reproject": "with a fixed seed the reused samples repeat the new frame's own",
+                           "blend": "it averages frames whose noise must be independent"}
 
     def __init__(self, scene, view_layer, options: Options, out_pattern: str, frames: list,
                  reference_pattern: str | None = None, temporal: str = "none",
@@ -1229,14 +1232,11 @@ class FramesJob:
             raise JobError(f"unknown temporal mode {temporal!r} (choose {', '.join(self.MODES)})")
         if seed_mode not in self.SEED_MODES:
             raise JobError(f"unknown seed mode {seed_mode!r} (choose {', '.join(self.SEED_MODES)})")
-        if seed_mode == "fixed" and temporal == "blend":
-            raise JobError("--temporal blend needs --seed-mode animated: it averages frames whose "
-                           "noise must be independent")
-        if seed_mode == "fixed" and temporal == "reproject":
-            raise JobError("--temporal reproject needs --seed-mode animated: with a fixed seed the "
-                           "reused samples repeat the new frame's own")
+        if seed_mode == "fixed" and temporal in self.NEEDS_ANIMATED_SEED:
+            raise JobError(f"--temporal {temporal} needs --seed-mode animated: "
+                           f"{self.NEEDS_ANIMATED_SEED[temporal]}")
         self.seed_mode = seed_mode if seed_mode != "auto" else \
-            ("animated" if temporal in ("reproject", "blend") else "fixed")
+            ("animated" if temporal in self.NEEDS_ANIMATED_SEED else "fixed")
         self.view_layers = list(view_layers) if view_layers else [view_layer]
         if len(self.view_layers) > 1 and temporal != "none":
             raise JobError("--temporal works on one view layer: choose it with --view-layer")
@@ -1341,14 +1341,9 @@ class FramesJob:
 
     def _lp_temporal(self, run):
         """Final reconstruction of a frame with LP's temporal extension."""
-        from ..core import reproject, temporal
+        from ..core import temporal
         static = run.method.reconstruct(run.buffers, run.params)
-        center = None
-        if self._prev is not None:
-            prev_buf, prev_cam, _ = self._prev
-            center = reproject.backward_coordinates(reproject.Camera.from_render(prev_cam),
-                                                    reproject.Camera.from_render(self.job.camera),
-                                                    run.buffers, prev_buf.shape)
+        center = self._backward_coordinates(run.buffers)
         res = temporal.step(self._temporal_state, run.buffers, self.temporal_params,
                             frame=self.job.options.frame, static=static, center=center)
         self._temporal_state = res.state
@@ -1358,20 +1353,27 @@ class FramesJob:
             out.info["center_fraction"] = static.info["center_fraction"]
         return out
 
+    def _backward_coordinates(self, buffers):
+        """Where each pixel of this frame was in the previous one
+        (``reproject.backward_coordinates``); None for the first frame."""
+        from ..core import reproject
+        if self._prev is None:
+            return None
+        prev_buf, prev_cam, _ = self._prev
+        return reproject.backward_coordinates(reproject.Camera.from_render(prev_cam),
+                                              reproject.Camera.from_render(self.job.camera),
+                                              buffers, prev_buf.shape)
+
     def _blend(self, run):
         """Final reconstruction of a frame blended with the previous frame's
         output (core/history.py)."""
         from ..core import history, reproject
         from ..core.method import MethodResult
         static = run.method.reconstruct(run.buffers, run.params)
-        cam = reproject.Camera.from_render(self.job.camera)
-        coords = None
-        if self._prev is not None and self._history is not None:
-            prev_buf, prev_cam, _ = self._prev
-            coords = reproject.backward_coordinates(reproject.Camera.from_render(prev_cam), cam,
-                                                    run.buffers, self._history.shape)
+        coords = self._backward_coordinates(run.buffers) if self._history is not None else None
         res = history.blend(static.image, static.error, history.Surface.from_buffers(run.buffers),
-                            self._history, coords, cam.position, self.history_params)
+                            self._history, coords, reproject.Camera.from_render(self.job.camera).position,
+                            self.history_params)
         self._history = res.history
         info = dict(static.info)
         info.update({f"blend_{k}": float(v) for k, v in res.info.items()})
