@@ -534,6 +534,7 @@ class DaskExecutor:
 
     def _result(self, fut):
         try:
+            next(completed(self.farm, [fut]))
             results = fut.result()
         except FarmError:
             raise
@@ -543,6 +544,44 @@ class DaskExecutor:
             raise _farm_error(self.farm, exc) from None
         fut.release()
         return results
+
+
+KEEP = "the checkpoint of the last iteration is kept: rerun with --resume"
+POLL_S = 2.0  # how often a wait on the farm checks that the scheduler is still there
+
+
+def completed(farm: Farm, futures):
+    """Yield ``futures`` as they finish (done, failed or cancelled), checking
+    every ``POLL_S`` that the client still reaches the scheduler.
+
+    Why: a future whose scheduler died is not always told so (its
+    ``result()`` can wait for ever); a client that has not been connected for
+    longer than ``farm.connect_timeout`` (its own reconnection window) or that
+    closed is a lost farm: :class:`FarmError` with ``lost=True``."""
+    from distributed import wait
+    pending = list(futures)
+    away_since = None
+    while pending:
+        try:
+            done, rest = wait(pending, timeout=POLL_S, return_when="FIRST_COMPLETED")
+        except TimeoutError:
+            done, rest = [], pending
+        for fut in done:
+            yield fut
+        pending = list(rest)
+        if done or not pending:
+            away_since = None
+            continue
+        status = str(getattr(farm.client, "status", "running"))
+        if status == "running":
+            away_since = None
+            continue
+        now = time.monotonic()
+        away_since = now if away_since is None else away_since
+        if status in ("closed", "closing") or now - away_since > farm.connect_timeout:
+            where = farm.settings.scheduler or "the local cluster"
+            raise FarmError(f"lost the Dask scheduler ({where}): the client is {status}; {KEEP} on a new cluster",
+                            lost=True)
 
 
 def _cancel_pending(client, futures) -> None:
@@ -638,7 +677,7 @@ def _farm_error(farm: Farm, exc) -> FarmError:
     """One line for a farm failure: workers that kept dying, the scheduler
     lost, or another error of a task on a worker."""
     names = {c.__name__ for c in type(exc).__mro__}
-    keep = "the checkpoint of the last iteration is kept: rerun with --resume"
+    keep = KEEP
     if "KilledWorker" in names:
         return FarmError(f"a region task was on several workers that died ({_one_line(exc)}); {keep}", lost=True)
     if names & LOST or isinstance(exc, (OSError, TimeoutError)):
@@ -962,7 +1001,6 @@ class FarmFramesJob:
 
     def steps(self):
         from ..core.pipeline import Progress
-        from distributed import as_completed
         n = len(self.frames)
         if self.temporal != "none":
             yield Progress("plan", 0, 0.0, farm_job.describe_chains(self.chain_list, self.cuts,
@@ -984,7 +1022,7 @@ class FarmFramesJob:
                                          key=f"cycles-adaptive-frames-{self.farm.token}-{first}"))
         done = len(skipped)
         try:
-            for fut in as_completed(futures):
+            for fut in completed(self.farm, futures):
                 try:
                     res = fut.result()
                 except FarmError:

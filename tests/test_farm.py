@@ -217,6 +217,28 @@ def test_a_lost_scheduler_stops_with_one_line_and_resume_finishes_exactly(tmp_pa
     assert np.abs(n - ref_n).max() == 0.0
 
 
+def test_a_wait_on_a_silent_lost_scheduler_ends_in_a_farm_error(farm2, monkeypatch):
+    """A future that is never told its scheduler died (a client reconnecting
+    for longer than its window, or closed) ends the wait with a lost-farm
+    error instead of waiting for ever; a connected client keeps waiting and
+    yields each future as it finishes."""
+    from types import SimpleNamespace
+    monkeypatch.setattr(farm, "POLL_S", 0.1)
+    quick = farm2.client.submit(farm.remote_call(), "time", "sleep", 0.3, pure=False)
+    assert list(farm.completed(farm2, [quick])) == [quick]
+    # needs a resource no worker has: pending for ever, and no worker is kept busy
+    stuck = farm2.client.submit(farm.remote_call(), "time", "sleep", 0, pure=False, resources={"none": 1})
+    try:
+        for status in ("connecting", "closed"):
+            gone = SimpleNamespace(client=SimpleNamespace(status=status), connect_timeout=0.5,
+                                   settings=farm2.settings)
+            with pytest.raises(farm.FarmError) as err:
+                list(farm.completed(gone, [stuck]))
+            assert err.value.lost and "lost the Dask scheduler" in str(err.value) and "--resume" in str(err.value)
+    finally:
+        stuck.cancel()
+
+
 def test_a_scheduler_lost_after_the_last_render_still_gives_the_local_image(tmp_path):
     """lp's final fit goes to the workers in bands; the scheduler is killed
     after the last render: the fit is computed on the controller instead (one
