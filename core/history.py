@@ -20,6 +20,15 @@ Per frame (:func:`blend`):
    positions within ``tolerance * distance + pixels * footprint``, normals within
    ``normal_cos``, the same object index) and renormalised over the kept taps;
    a pixel whose kept taps weigh less than ``min_tap_weight`` has no history.
+   With ``resample="catmull-rom"`` (auto for denoisers) the image (not its error) is the separable
+   Catmull-Rom spline over the 4x4 pixels around the point wherever every tap
+   of non-zero weight passes the same-surface test, clamped per channel to
+   the range of the 2x2 nearest values (the spline's overshoot would ring at
+   edges and could turn negative); elsewhere bilinear.  Why: bilinear
+   resampling low-pass filters a camera pan by up to half a pixel per frame,
+   and the blur adds up over the carried frames (measured, docs/notes/flicker.md).
+   The error stays the bilinear mean of the taps' errors: a conservative
+   choice (errors of neighbouring pixels are correlated after a denoiser).
 2. Change test: with ``d^2`` the RGB mean of ``(D - W)^2``, the history is
    dropped where ``d^2 > z^2 (E~ + e~)``, ``E~`` / ``e~`` the errors pooled over a
    ``(2 pool_radius + 1)^2`` window (the per-pixel estimates are too noisy to
@@ -87,6 +96,11 @@ class Params:
                                     0.0, 1.0, label="Object Index Tolerance")
     min_tap_weight: float = param(0.25, "a pixel keeps its history only if the bilinear weights of its "
                                   "same-surface taps sum to at least this", 0.0, 1.0, label="Min Tap Weight")
+    resample: str = param("auto", "how the previous frame is read between its pixels: catmull-rom "
+                          "(4x4 pixels, keeps the detail of a panning camera; bilinear at silhouettes), "
+                          "bilinear (2x2, blurs by up to half a pixel per frame, and averages noise), or auto: "
+                          "bilinear for the sample mean (uniform, var), catmull-rom for denoisers",
+                          choices=("auto", "catmull-rom", "bilinear"), label="Resampling")
     min_valid_fraction: float = param(0.01, "below this share of pixels with a history the frame counts as "
                                       "a camera cut and starts over", 0.0, 1.0, label="Min History Share")
 
@@ -96,16 +110,19 @@ SAMPLE_MEAN_METHODS = ("uniform", "var")
 
 
 def resolve(params: Params, method: str | None) -> Params:
-    """``params`` with the auto (-1) radii set for ``method``: pooled (3, 1) for
-    the sample mean, per pixel (0, 0) for denoisers and for ``None``.
-    Measured on the animated scene (docs/notes/flicker.md): uniform gains
-    0.66x relMSE with (3, 1) against 0.78x with (0, 0); oidn 0.96x with
-    (0, 0) against 1.0x with (3, 1)."""
+    """``params`` with the auto values set for ``method``: radii (-1) pooled
+    (3, 1) and bilinear resampling for the sample mean; per pixel (0, 0) and
+    Catmull-Rom for denoisers and for ``None``.  Measured on the animated
+    scene (docs/notes/flicker.md): uniform gains 0.66x relMSE with (3, 1)
+    against 0.78x with (0, 0); oidn 0.96x with (0, 0) against 1.0x with
+    (3, 1).  Catmull-Rom: uniform / var 0.8-0.9 % worse than bilinear (its
+    negative lobes pass more of the noise), lp / oidn 0.2-0.3 % better."""
     import dataclasses
     pooled = method in SAMPLE_MEAN_METHODS
+    resample = params.resample if params.resample != "auto" else ("bilinear" if pooled else "catmull-rom")
     return dataclasses.replace(
         params, pool_radius=params.pool_radius if params.pool_radius >= 0 else (3 if pooled else 0),
-        bias_radius=params.bias_radius if params.bias_radius >= 0 else (1 if pooled else 0))
+        bias_radius=params.bias_radius if params.bias_radius >= 0 else (1 if pooled else 0), resample=resample)
 
 
 @dataclass
@@ -185,11 +202,21 @@ class Result:
     info: dict
 
 
+def catmull_rom_weights(t: np.ndarray) -> tuple:
+    """The four Catmull-Rom spline weights of the pixels at offsets -1, 0, 1, 2
+    from a point a fraction ``t`` in [0, 1) past pixel 0 (they sum to 1 and
+    reproduce linear functions exactly)."""
+    t2, t3 = t * t, t * t * t
+    return ((-t + 2 * t2 - t3) / 2, (2 - 5 * t2 + 3 * t3) / 2, (t + 4 * t2 - 3 * t3) / 2, (t3 - t2) / 2)
+
+
 def warp(history: History, coords: np.ndarray, current: Surface, camera_position, params: Params):
     """The history at each current pixel: (image (H, W, 3), error (H, W), length
-    (H, W), valid (H, W) bool).  ``coords`` (H, W, 2) continuous (row, col) in
-    the previous frame (NaN: none), ``camera_position`` (3,) this frame's
-    camera (the distance of the tolerance)."""
+    (H, W), valid (H, W) bool, spline (H, W) bool: read by Catmull-Rom).
+    ``coords`` (H, W, 2) continuous (row, col) in the previous frame (NaN:
+    none), ``camera_position`` (3,) this frame's camera (the distance of the
+    tolerance).  Bilinear, or Catmull-Rom for the
+    image where every tap is the same surface (module docstring, step 1)."""
     h, w = current.background.shape
     hp, wp = history.shape
     r = coords[..., 0] - 0.5
@@ -201,36 +228,65 @@ def warp(history: History, coords: np.ndarray, current: Surface, camera_position
     fr, fc = r - r0, c - c0
     dist = np.linalg.norm(current.position - np.asarray(camera_position, np.float64), axis=-1)
     tol = params.tolerance * dist + params.pixels * np.nan_to_num(current.footprint, nan=0.0)
-    img = np.zeros((h, w, 3))
-    err = np.zeros((h, w))
-    length = np.zeros((h, w))
-    wsum = np.zeros((h, w))
     prev = history.surface
-    for dr, dc in ((0, 0), (0, 1), (1, 0), (1, 1)):
+    whole = np.zeros((h, w), bool)
+
+    foot = np.nan_to_num(current.footprint, nan=0.0)
+
+    def tap(dr, dc, outer=False):
+        """(kept, row, col) of the previous pixel at (r0 + dr, c0 + dc); an
+        ``outer`` tap of the spline is up to 2 px from the point, and its
+        position slack grows by its distance beyond half a pixel (in
+        footprints), the margin an inner tap half a pixel away has."""
         rr, cc = r0 + dr, c0 + dc
-        bw = (fr if dr else 1.0 - fr) * (fc if dc else 1.0 - fc)
-        ok = has & (rr >= 0) & (rr < hp) & (cc >= 0) & (cc < wp) & (bw > 0)
+        t = tol + np.maximum(np.hypot(dr - fr, dc - fc) - 0.5, 0.0) * foot if outer else tol
+        ok = has & (rr >= 0) & (rr < hp) & (cc >= 0) & (cc < wp)
         ri, ci = np.clip(rr, 0, max(hp - 1, 0)), np.clip(cc, 0, max(wp - 1, 0))
         pbg = prev.background[ri, ci]
         with np.errstate(invalid="ignore"):
-            near = np.linalg.norm(prev.position[ri, ci] - current.position, axis=-1) <= tol
+            near = np.linalg.norm(prev.position[ri, ci] - current.position, axis=-1) <= t
             same = np.where(current.background, pbg, ~pbg & ~current.background & near)
             if params.normal_cos > -1.0 and prev.normal is not None and current.normal is not None:
                 cos = np.sum(prev.normal[ri, ci] * current.normal, axis=-1)
                 same &= current.background | (cos >= params.normal_cos)
             if prev.object_index is not None and current.object_index is not None:
                 same &= np.abs(prev.object_index[ri, ci] - current.object_index) <= params.object_tolerance
-        hv = history.image[ri, ci]
-        he = history.error[ri, ci]
-        ok &= same & np.all(np.isfinite(hv), axis=-1) & np.isfinite(he)
+        ok &= same & np.all(np.isfinite(history.image[ri, ci]), axis=-1) & np.isfinite(history.error[ri, ci])
+        return ok, ri, ci
+
+    img = np.zeros((h, w, 3))
+    err = np.zeros((h, w))
+    length = np.zeros((h, w))
+    wsum = np.zeros((h, w))
+    lo = np.full((h, w, 3), np.inf)
+    hi = np.full((h, w, 3), -np.inf)
+    for dr, dc in ((0, 0), (0, 1), (1, 0), (1, 1)):
+        bw = (fr if dr else 1.0 - fr) * (fc if dc else 1.0 - fc)
+        ok, ri, ci = tap(dr, dc)
+        ok &= bw > 0
         wt = np.where(ok, bw, 0.0)
-        img += wt[..., None] * np.where(ok[..., None], hv, 0.0)
-        err += wt * np.where(ok, he, 0.0)
+        hv = np.where(ok[..., None], history.image[ri, ci], 0.0)
+        img += wt[..., None] * hv
+        err += wt * np.where(ok, history.error[ri, ci], 0.0)
         length += wt * np.where(ok, history.length[ri, ci], 0.0)
         wsum += wt
+        lo = np.where(ok[..., None], np.minimum(lo, hv), lo)
+        hi = np.where(ok[..., None], np.maximum(hi, hv), hi)
     valid = wsum >= max(params.min_tap_weight, 1e-12)
     inv = np.where(valid, 1.0 / np.where(valid, wsum, 1.0), 0.0)
-    return img * inv[..., None], err * inv, length * inv, valid
+    img *= inv[..., None]
+    if resolve(params, None).resample == "catmull-rom":
+        wr, wc = catmull_rom_weights(fr), catmull_rom_weights(fc)
+        spline = np.zeros((h, w, 3))
+        whole = valid.copy()
+        for i, dr in enumerate((-1, 0, 1, 2)):
+            for j, dc in enumerate((-1, 0, 1, 2)):
+                wt = wr[i] * wc[j]
+                ok, ri, ci = tap(dr, dc, outer=True)
+                whole &= ok | (wt == 0)
+                spline += np.where(ok, wt, 0.0)[..., None] * np.where(ok[..., None], history.image[ri, ci], 0.0)
+        img = np.where(whole[..., None], np.clip(spline, lo, hi), img)
+    return img, err * inv, length * inv, valid, whole
 
 
 def blend(image: np.ndarray, error: np.ndarray, current: Surface, history: History | None,
@@ -247,10 +303,11 @@ def blend(image: np.ndarray, error: np.ndarray, current: Surface, history: Histo
     big = float(finite_err.max()) if finite_err.size else 1.0
     D = np.where(bad[..., None], 0.0, image)
     E = np.where(bad, max(big, 1.0), np.maximum(error, 0.0))
-    info = {"history_fraction": 0.0, "changed_fraction": 0.0, "cut": False, "history_weight": 0.0}
+    info = {"history_fraction": 0.0, "changed_fraction": 0.0, "cut": False, "history_weight": 0.0,
+            "spline_fraction": 0.0}
     if history is None or coords is None or h * w == 0:
         return _result(D, E, np.ones((h, w)), current, info)
-    W, e, L, valid = warp(history, np.asarray(coords, np.float64), current, camera_position, params)
+    W, e, L, valid, spline = warp(history, np.asarray(coords, np.float64), current, camera_position, params)
     e = np.maximum(e, 0.0)
     if valid.mean() < params.min_valid_fraction:
         info["cut"] = True
@@ -281,7 +338,7 @@ def blend(image: np.ndarray, error: np.ndarray, current: Surface, history: Histo
     out_err = np.where(bad & ~use, max(big, 1.0), out_err)
     length = np.where(use, np.minimum(L, params.max_frames - 1) + 1.0, 1.0)
     info.update(history_fraction=float(use.mean()), changed_fraction=float(changed.mean()),
-                history_weight=float(np.mean(1.0 - wc)))
+                history_weight=float(np.mean(1.0 - wc)), spline_fraction=float((use & spline).mean()))
     return _result(out_img, out_err, length, current, info)
 
 
