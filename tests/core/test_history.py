@@ -130,6 +130,25 @@ def test_a_change_beyond_the_errors_drops_the_history_there():
     assert np.mean(second.history.length[outside] == 2.0) > 0.99
 
 
+def test_a_firefly_with_its_own_large_error_takes_the_history():
+    """A firefly in this frame whose per-pixel error says so (pooling over 7x7
+    would dilute it 49 times): the history is kept there and outweighs it, so
+    the output is much closer to the truth than the firefly."""
+    rng = np.random.default_rng(8)
+    sd = 0.01
+    truth = np.full((H, W, 3), 0.5)
+    err = np.full((H, W), sd ** 2)
+    params = hi.Params(pool_radius=3, bias_radius=1)
+    first = hi.blend(noisy(truth, sd, rng), err, plane(), None, None, CAM, params)
+    cur = noisy(truth, sd, rng)
+    cur[12, 16] = 20.0
+    err_cur = err.copy()
+    err_cur[12, 16] = 20.0 ** 2  # its estimate: a one-sample spike of ~20
+    second = hi.blend(cur, err_cur, plane(), first.history, identity(), CAM, params)
+    assert second.history.length[12, 16] == 2.0  # not dropped by the change test
+    assert abs(second.image[12, 16, 0] - 0.5) <= (20.0 - 0.5) / params.max_frames + 1e-9
+
+
 def test_another_surface_is_never_blended():
     """Disocclusion: where the previous frame saw a surface 1 unit closer (an
     occluder that moved away), the history is not used, even if it agrees."""
