@@ -294,10 +294,12 @@ def run_peers(scene, vl, budget: int, frames, seed: int, ref0, target_seconds, c
 
 def configurations(methods, temporals, seed_modes=("animated",)) -> list:
     """(method, temporal, seed mode) to run: ``lp`` temporal only with method
-    lp, ``reproject`` and ``blend`` only with the animated seed (FramesJob
-    refuses them fixed)."""
+    lp, the modes of ``FramesJob.NEEDS_ANIMATED_SEED`` only with the
+    animated seed (FramesJob refuses them fixed)."""
+    from ..operators.job import FramesJob
+    animated_only = FramesJob.NEEDS_ANIMATED_SEED
     return [(m, t, sm) for sm in seed_modes for m in methods for t in temporals
-            if (t != "lp" or m == "lp") and (t not in ("reproject", "blend") or sm == "animated")]
+            if (t != "lp" or m == "lp") and (t not in animated_only or sm == "animated")]
 
 
 def run_scene(name: str, cfg: dict, keep_images: bool = False, publish=None) -> dict:
