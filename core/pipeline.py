@@ -1124,17 +1124,21 @@ class AdaptiveRun:
         return tasks, covered, counts
 
     # ----------------------------------------------------------------- result
+    def method_reconstruction(self):
+        """The method's own reconstruction of the samples so far, before the
+        guard: of :attr:`view` (the passes that carry information), spread
+        over the executor's workers; the target check's result when it saw
+        these very samples.  A frame-range reconstructor builds on this."""
+        if self._result is not None and self._result[0] == self.samples_rendered:
+            return self._result[1]
+        return self.method.reconstruct(self.view, self.params, **self._spread(final=True))
+
     def reconstruct(self, reconstructor=None):
         """Final reconstruction (the method's, or ``reconstructor(run)``),
         through the consistency guard of ``Options.guard_z``."""
         self.settle()
         t0 = time.perf_counter()
-        if reconstructor is None and self._result is not None and self._result[0] == self.samples_rendered:
-            result = self._result[1]  # the target check's reconstruction of these very samples
-        elif reconstructor is None:
-            result = self.method.reconstruct(self.view, self.params, **self._spread(final=True))
-        else:
-            result = reconstructor(self)
+        result = self.method_reconstruction() if reconstructor is None else reconstructor(self)
         guard = self.options.guard_z
         if self.selection is not None and "guard_z" in self.selection:  # the selecting method's choice
             guard = float(self.selection["guard_z"])

@@ -1342,7 +1342,7 @@ class FramesJob:
     def _lp_temporal(self, run):
         """Final reconstruction of a frame with LP's temporal extension."""
         from ..core import temporal
-        static = run.method.reconstruct(run.buffers, run.params)
+        static = run.method_reconstruction()
         center = self._backward_coordinates(run.buffers)
         res = temporal.step(self._temporal_state, run.buffers, self.temporal_params,
                             frame=self.job.options.frame, static=static, center=center)
@@ -1369,7 +1369,7 @@ class FramesJob:
         output (core/history.py)."""
         from ..core import history, reproject
         from ..core.method import MethodResult
-        static = run.method.reconstruct(run.buffers, run.params)
+        static = run.method_reconstruction()
         coords = self._backward_coordinates(run.buffers) if self._history is not None else None
         res = history.blend(static.image, static.error, history.Surface.from_buffers(run.buffers),
                             self._history, coords, reproject.Camera.from_render(self.job.camera).position,

@@ -333,6 +333,25 @@ def test_blend_averages_frames_of_a_static_scene_and_needs_the_animated_seed(tmp
         FramesJob(scene, vl, opts, str(tmp_path / "c_####.exr"), [1, 2], temporal="blend", seed_mode="fixed")
 
 
+@pytest.mark.parametrize("method", ["oidn", "lp"])
+def test_a_frame_without_history_is_the_method_alone(tmp_path, method):
+    """The first frame of ``--temporal blend`` (no history yet) is exactly the
+    frame rendered without history: the blend starts from the method's own
+    reconstruction (the same view of the passes, the same spread)."""
+    from cycles_adaptive.operators.job import FramesJob
+    scene = build_scene(24, 16)
+    vl = bpy.context.view_layer
+    opts = Options(method=method, spp=4, initial_spp=2, subsets=2, seed=5)
+    images = {}
+    for temporal in ("none", "blend"):
+        fj = FramesJob(scene, vl, opts, str(tmp_path / f"{temporal}_####.exr"), [1], temporal=temporal,
+                       seed_mode="animated", preview=False)
+        for item in fj.steps():
+            if isinstance(item, dict):
+                images[temporal] = fj.job.result.image.copy()
+    np.testing.assert_array_equal(images["blend"], images["none"])
+
+
 def test_an_image_only_exr_keeps_the_image_passes_and_denoise_refuses_it(tmp_path):
     """``exr_contents="image"``: the result, error, samples per pixel and the
     feature means, bit for bit as in the full file, and nothing else; a
