@@ -261,8 +261,9 @@ def warp(history: History, coords: np.ndarray, current: Surface, camera_position
     err = np.zeros((h, w))
     length = np.zeros((h, w))
     wsum = np.zeros((h, w))
-    lo = np.full((h, w, 3), np.inf)
-    hi = np.full((h, w, 3), -np.inf)
+    spline_on = resolve(params, None).resample == "catmull-rom"
+    lo = np.full((h, w, 3), np.inf) if spline_on else None
+    hi = np.full((h, w, 3), -np.inf) if spline_on else None
     for dr, dc in ((0, 0), (0, 1), (1, 0), (1, 1)):
         bw = (fr if dr else 1.0 - fr) * (fc if dc else 1.0 - fc)
         ok, ri, ci = tap(dr, dc)
@@ -273,12 +274,13 @@ def warp(history: History, coords: np.ndarray, current: Surface, camera_position
         err += wt * np.where(ok, history.error[ri, ci], 0.0)
         length += wt * np.where(ok, history.length[ri, ci], 0.0)
         wsum += wt
-        lo = np.where(ok[..., None], np.minimum(lo, hv), lo)
-        hi = np.where(ok[..., None], np.maximum(hi, hv), hi)
+        if spline_on:  # the clamp range of the spline
+            lo = np.where(ok[..., None], np.minimum(lo, hv), lo)
+            hi = np.where(ok[..., None], np.maximum(hi, hv), hi)
     valid = wsum >= max(params.min_tap_weight, 1e-12)
     inv = np.where(valid, 1.0 / np.where(valid, wsum, 1.0), 0.0)
     img *= inv[..., None]
-    if resolve(params, None).resample == "catmull-rom":
+    if spline_on:
         wr, wc = catmull_rom_weights(fr), catmull_rom_weights(fc)
         spline = np.zeros((h, w, 3))
         whole = valid.copy()
