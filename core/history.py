@@ -20,9 +20,10 @@ Per frame (:func:`blend`):
    positions within ``tolerance * distance + pixels * footprint``, normals within
    ``normal_cos``, the same object index) and renormalised over the kept taps;
    a pixel whose kept taps weigh less than ``min_tap_weight`` has no history.
-   With ``resample="catmull-rom"`` (auto for denoisers) the image (not its error) is the separable
-   Catmull-Rom spline over the 4x4 pixels around the point wherever every tap
-   of non-zero weight passes the same-surface test, clamped per channel to
+   With ``resample="catmull-rom"`` (auto for denoisers) the image (not its
+   error) is the separable Catmull-Rom spline over the 4x4 pixels around the
+   point wherever every tap of non-zero weight passes the same-surface test
+   (the outer taps with a slack grown by their distance), clamped per channel to
    the range of the 2x2 nearest values (the spline's overshoot would ring at
    edges and could turn negative); elsewhere bilinear.  Why: bilinear
    resampling low-pass filters a camera pan by up to half a pixel per frame,
@@ -218,8 +219,8 @@ def warp(history: History, coords: np.ndarray, current: Surface, camera_position
     (H, W), valid (H, W) bool, spline (H, W) bool: read by Catmull-Rom).
     ``coords`` (H, W, 2) continuous (row, col) in the previous frame (NaN:
     none), ``camera_position`` (3,) this frame's camera (the distance of the
-    tolerance).  Bilinear, or Catmull-Rom for the
-    image where every tap is the same surface (module docstring, step 1)."""
+    tolerance).  Bilinear, or Catmull-Rom for the image where every tap is
+    the same surface (module docstring, step 1)."""
     h, w = current.background.shape
     hp, wp = history.shape
     r = coords[..., 0] - 0.5
@@ -230,11 +231,9 @@ def warp(history: History, coords: np.ndarray, current: Surface, camera_position
     r0, c0 = np.floor(r).astype(np.int64), np.floor(c).astype(np.int64)
     fr, fc = r - r0, c - c0
     dist = np.linalg.norm(current.position - np.asarray(camera_position, np.float64), axis=-1)
-    tol = params.tolerance * dist + params.pixels * np.nan_to_num(current.footprint, nan=0.0)
-    prev = history.surface
-    whole = np.zeros((h, w), bool)
-
     foot = np.nan_to_num(current.footprint, nan=0.0)
+    tol = params.tolerance * dist + params.pixels * foot
+    prev = history.surface
 
     def tap(dr, dc, outer=False):
         """(kept, row, col) of the previous pixel at (r0 + dr, c0 + dc); an
@@ -280,6 +279,7 @@ def warp(history: History, coords: np.ndarray, current: Surface, camera_position
     valid = wsum >= max(params.min_tap_weight, 1e-12)
     inv = np.where(valid, 1.0 / np.where(valid, wsum, 1.0), 0.0)
     img *= inv[..., None]
+    whole = np.zeros((h, w), bool)
     if spline_on:
         wr, wc = catmull_rom_weights(fr), catmull_rom_weights(fc)
         spline = np.zeros((h, w, 3))

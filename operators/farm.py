@@ -677,12 +677,11 @@ def _farm_error(farm: Farm, exc) -> FarmError:
     """One line for a farm failure: workers that kept dying, the scheduler
     lost, or another error of a task on a worker."""
     names = {c.__name__ for c in type(exc).__mro__}
-    keep = KEEP
     if "KilledWorker" in names:
-        return FarmError(f"a region task was on several workers that died ({_one_line(exc)}); {keep}", lost=True)
+        return FarmError(f"a region task was on several workers that died ({_one_line(exc)}); {KEEP}", lost=True)
     if names & LOST or isinstance(exc, (OSError, TimeoutError)):
         where = farm.settings.scheduler or "the local cluster"
-        return FarmError(f"lost the Dask scheduler ({where}): {_one_line(exc)}; {keep} on a new cluster",
+        return FarmError(f"lost the Dask scheduler ({where}): {_one_line(exc)}; {KEEP} on a new cluster",
                          lost=True)
     return FarmError(f"a task failed on a worker: {_one_line(exc)}")
 
