@@ -18,10 +18,12 @@ artefacts that change from frame to frame.  Measurements: docs/notes/flicker.md.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import glob
 import json
 import os
 import re
+import shlex
 import shutil
 import sys
 import tempfile
@@ -183,23 +185,35 @@ def _seeded(name: str, seed_mode: str) -> str:
     return name if seed_mode == "animated" else f"{name} ({seed_mode} seed)"
 
 
+def history_label(params: dict) -> str:
+    """The run-name suffix of a ``--history`` variant ("" for the defaults)."""
+    return "[" + ",".join(f"{k}={v}" for k, v in params.items()) + "]" if params else ""
+
+
 def run_ours(scene, vl, method: str, temporal: str, budget: int, frames, seed: int, tmpdir: str,
-             max_seconds: float = 0.0, seed_mode: str = "animated") -> tuple:
+             max_seconds: float = 0.0, seed_mode: str = "animated", history_params: dict | None = None) -> tuple:
     """One sequence of our loop through FramesJob; (record, list of images).
+    ``history_params``: core.history.Params of ``blend`` (a ``--history``
+    variant; its settings join the run's name).
 
     Seconds per frame are the job's total minus writing its EXR (the loop,
     executor set-up, renders, reconstruction: what the benchmark times)."""
     from ..core.pipeline import Options
     from ..operators.job import FramesJob
-    rec = {"kind": "method", "name": _seeded(method if temporal == "none" else f"{method}+{temporal}", seed_mode),
+    history_params = dict(history_params or {}) if temporal == "blend" else {}
+    name = (method if temporal == "none" else f"{method}+{temporal}") + history_label(history_params)
+    rec = {"kind": "method", "name": _seeded(name, seed_mode),
            "method": method, "temporal": temporal, "budget": int(budget), "seed_mode": seed_mode}
+    if history_params:
+        rec["history_params"] = history_params
     images, seconds, spp, reused = [], [], [], []
     try:
         opts = Options(method=method, spp=float(budget), frame=int(frames[0]), seed=int(seed),
                        max_seconds=float(max_seconds))
         pattern = os.path.join(tmpdir, f"{method}_{temporal}_{seed_mode}_####.exr")
         fj = FramesJob(scene, vl, opts, pattern, frames, temporal=temporal, overwrite=True,
-                       preview=False, keep_denoise_passes=False, seed_mode=seed_mode)
+                       preview=False, keep_denoise_passes=False, seed_mode=seed_mode,
+                       history_params=history_params)
         before = 0.0
         for item in fj.steps():
             if isinstance(item, dict):
@@ -292,14 +306,54 @@ def run_peers(scene, vl, budget: int, frames, seed: int, ref0, target_seconds, c
     return out
 
 
-def configurations(methods, temporals, seed_modes=("animated",)) -> list:
-    """(method, temporal, seed mode) to run: ``lp`` temporal only with method
-    lp, the modes of ``FramesJob.NEEDS_ANIMATED_SEED`` only with the
-    animated seed (FramesJob refuses them fixed)."""
+def configurations(methods, temporals, seed_modes=("animated",), history_variants=({},)) -> list:
+    """(method, temporal, seed mode, history params) to run: ``lp`` temporal
+    only with method lp, the modes of ``FramesJob.NEEDS_ANIMATED_SEED`` only
+    with the animated seed (FramesJob refuses them fixed), each ``--history``
+    variant with ``blend`` (the other modes once, with ``{}``)."""
     from ..operators.job import FramesJob
     animated_only = FramesJob.NEEDS_ANIMATED_SEED
-    return [(m, t, sm) for sm in seed_modes for m in methods for t in temporals
+    return [(m, t, sm, hv) for sm in seed_modes for m in methods for t in temporals
+            for hv in (history_variants if t == "blend" else ({},))
             if (t != "lp" or m == "lp") and (t not in animated_only or sm == "animated")]
+
+
+def parse_history_variants(text: str | None) -> list:
+    """``--history``: variants separated by ``;``, each ``key=value`` pairs
+    separated by ``,`` of core.history.Params (``""``: the defaults); checked
+    against the Params now, so a typo fails before any render."""
+    from ..core import history
+    from ..core.method import params_from_dict
+    if not text:
+        return [{}]
+    out = []
+    for part in text.split(";"):
+        d = {}
+        for item in filter(None, (x.strip() for x in part.split(","))):
+            key, sep, value = item.partition("=")
+            if not sep:
+                raise SequenceError(f"--history: {item!r} is not key=value")
+            d[key.strip().replace("-", "_")] = _scalar(value.strip())
+        known = {f.name for f in dataclasses.fields(history.Params)}
+        unknown = sorted(set(d) - known)
+        if unknown:
+            raise SequenceError(f"--history: unknown setting(s) {', '.join(unknown)} "
+                                f"(known: {', '.join(sorted(known))})")
+        try:
+            params_from_dict(history.Params, d)
+        except (TypeError, ValueError, KeyError) as exc:
+            raise SequenceError(f"--history {part!r}: {exc}") from None
+        out.append(d)
+    return out
+
+
+def _scalar(text: str):
+    for kind in (int, float):
+        try:
+            return kind(text)
+        except ValueError:
+            pass
+    return text
 
 
 def run_scene(name: str, cfg: dict, keep_images: bool = False, publish=None) -> dict:
@@ -350,9 +404,10 @@ def run_scene(name: str, cfg: dict, keep_images: bool = False, publish=None) -> 
         seed_modes = cfg.get("seed_modes", ["animated"])
         for budget in cfg["budgets"]:
             ours = []
-            for m, t, sm in configurations(cfg["methods"], cfg["temporal"], seed_modes):
+            variants = cfg.get("history_variants", [{}])
+            for m, t, sm, hv in configurations(cfg["methods"], cfg["temporal"], seed_modes, variants):
                 rec, imgs = run_ours(scene, vl, m, t, budget, frames, cfg["seed"], tmp,
-                                     cfg["run_max_seconds"], sm)
+                                     cfg["run_max_seconds"], sm, hv)
                 runs.append(_judge(rec, imgs, ref_rgb, images, keep_images))
                 publish(out)
                 if rec["status"] == "ok":
@@ -490,6 +545,10 @@ def add_arguments(p) -> None:
     p.add_argument("--run-max-seconds", type=float, default=0.0,
                    help="time limit of each frame (render's --max-seconds, planned from the run's "
                         "timings: changes what the run renders; 0: none)")
+    p.add_argument("--history", default="",
+                   help="settings of --temporal blend (core.history.Params) to compare: variants separated "
+                        "by ';', each key=value pairs separated by ',', e.g. 'input_frames=1;max_frames=1' "
+                        "(default: the defaults)")
     p.add_argument("--out", default=DEFAULT_OUT, help="output folder (default bench_out/sequence)")
     p.add_argument("--json", action="store_true", help="print one JSON object as the last line")
 
@@ -511,6 +570,7 @@ def resolve_config(args) -> dict:
             raise SequenceError(f"unknown seed mode {sm!r}; choose animated and/or fixed")
     if not seed_modes:
         raise SequenceError("--seed-modes: give animated and/or fixed")
+    history_variants = parse_history_variants(args.history)
     if not configurations(methods, temporal, seed_modes):
         raise SequenceError("no method x temporal configuration to run")
     try:
@@ -532,7 +592,8 @@ def resolve_config(args) -> dict:
             "reference_spp": rs, "reference_dir": os.path.abspath(args.reference_dir),
             "render_references": not args.no_render_references, "peers": not args.no_peers,
             "seed": int(args.seed), "seed_modes": seed_modes, "max_samples_factor": int(args.max_samples_factor),
-            "run_max_seconds": float(args.run_max_seconds), "out": os.path.abspath(args.out)}
+            "run_max_seconds": float(args.run_max_seconds), "history_variants": history_variants,
+            "out": os.path.abspath(args.out)}
 
 
 def command_of(cfg: dict) -> str:
@@ -557,6 +618,9 @@ def command_of(cfg: dict) -> str:
         parts += ["--max-samples-factor", str(cfg["max_samples_factor"])]
     if cfg["run_max_seconds"]:
         parts += ["--run-max-seconds", f"{cfg['run_max_seconds']:g}"]
+    if cfg.get("history_variants", [{}]) != [{}]:
+        text = ";".join(",".join(f"{k}={v}" for k, v in d.items()) for d in cfg["history_variants"])
+        parts += ["--history", shlex.quote(text)]
     return " ".join(parts)
 
 

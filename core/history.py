@@ -54,6 +54,11 @@ Per frame (:func:`blend`):
    underestimate can do, and the benchmark reports the estimate's correlation
    with the true error as for every method.
 
+For denoisers the history also enters *before* the method:
+:func:`accumulate` averages this frame's noisy samples with the previous
+frames' (warped the same way, at most ``input_frames`` frames' worth), and
+the method reconstructs those buffers (its docstring has the steps).
+
 A frame where fewer than ``min_valid_fraction`` of the pixels find a history
 (a camera cut) starts over everywhere.  Non-finite pixels of the current image
 take the history where it is valid and 0 otherwise, with an infinite error
@@ -107,6 +112,20 @@ class Params:
                           choices=("auto", "catmull-rom", "bilinear"), label="Resampling")
     min_valid_fraction: float = param(0.01, "below this share of pixels with a history the frame counts as "
                                       "a camera cut and starts over", 0.0, 1.0, label="Min History Share")
+    input_frames: int = param(-1, "longest history of a denoiser's input, in frames' samples: the noisy "
+                              "samples of the previous frames, warped, are averaged into this frame's before "
+                              "the method runs, holding at most this many frames' worth; 1 = off; -1 = auto: "
+                              "2 for denoisers (oidn, lp, awr, rhf; longer histories made OIDN worse), 1 for "
+                              "the sample mean (its output blend is the same thing)", -1, 64,
+                              label="Input History (frames)")
+    input_max_specular_share: float = param(0.5, "the input history is not carried where glossy + "
+                                            "transmission light exceeds this share of the pixel's luminance "
+                                            "(reflections move unlike their surface; Schalk's reprojection "
+                                            "never reuses specular pixels); 1 = no limit", 0.0, 1.0,
+                                            label="Input Max Specular Share")
+    input_pool_radius: int = param(1, "radius of the window over which the variances are averaged for the "
+                                   "input history's change test and weights; 0 = per pixel", 0, 16,
+                                   label="Input Error Pooling")
 
 
 #: methods whose image is the sample mean: their errors are pooled before use (``resolve``)
@@ -126,7 +145,8 @@ def resolve(params: Params, method: str | None) -> Params:
     resample = params.resample if params.resample != "auto" else ("bilinear" if pooled else "catmull-rom")
     return dataclasses.replace(
         params, pool_radius=params.pool_radius if params.pool_radius >= 0 else (3 if pooled else 0),
-        bias_radius=params.bias_radius if params.bias_radius >= 0 else (1 if pooled else 0), resample=resample)
+        bias_radius=params.bias_radius if params.bias_radius >= 0 else (1 if pooled else 0), resample=resample,
+        input_frames=params.input_frames if params.input_frames >= 1 else (1 if pooled else 2))
 
 
 @dataclass
@@ -186,7 +206,10 @@ def footprint(pos: np.ndarray, background: np.ndarray) -> np.ndarray:
 @dataclass
 class History:
     """The carried state: the last output (H, W, 3), its error (H, W), how many
-    frames it averages (H, W), and the Surface of its frame."""
+    frames it averages (H, W), and the Surface of its frame.  The input
+    history of :func:`accumulate` has the same shape of data: the
+    accumulated means of both halves (H, W, 6), the variance of their mean
+    (H, W) and the samples they hold (H, W)."""
 
     image: np.ndarray
     error: np.ndarray
@@ -215,7 +238,7 @@ def catmull_rom_weights(t: np.ndarray) -> tuple:
 
 
 def warp(history: History, coords: np.ndarray, current: Surface, camera_position, params: Params):
-    """The history at each current pixel: (image (H, W, 3), error (H, W), length
+    """The history at each current pixel: (image (H, W, C), error (H, W), length
     (H, W), valid (H, W) bool, spline (H, W) bool: read by Catmull-Rom).
     ``coords`` (H, W, 2) continuous (row, col) in the previous frame (NaN:
     none), ``camera_position`` (3,) this frame's camera (the distance of the
@@ -256,13 +279,13 @@ def warp(history: History, coords: np.ndarray, current: Surface, camera_position
         ok &= same & np.all(np.isfinite(history.image[ri, ci]), axis=-1) & np.isfinite(history.error[ri, ci])
         return ok, ri, ci
 
-    img = np.zeros((h, w, 3))
+    img = np.zeros((h, w, history.image.shape[-1]))
     err = np.zeros((h, w))
     length = np.zeros((h, w))
     wsum = np.zeros((h, w))
     spline_on = resolve(params, None).resample == "catmull-rom"
-    lo = np.full((h, w, 3), np.inf) if spline_on else None
-    hi = np.full((h, w, 3), -np.inf) if spline_on else None
+    lo = np.full(img.shape, np.inf) if spline_on else None
+    hi = np.full(img.shape, -np.inf) if spline_on else None
     for dr, dc in ((0, 0), (0, 1), (1, 0), (1, 1)):
         bw = (fr if dr else 1.0 - fr) * (fc if dc else 1.0 - fc)
         ok, ri, ci = tap(dr, dc)
@@ -282,7 +305,7 @@ def warp(history: History, coords: np.ndarray, current: Surface, camera_position
     whole = np.zeros((h, w), bool)
     if spline_on:
         wr, wc = catmull_rom_weights(fr), catmull_rom_weights(fc)
-        spline = np.zeros((h, w, 3))
+        spline = np.zeros(img.shape)
         whole = valid.copy()
         for i, dr in enumerate((-1, 0, 1, 2)):
             for j, dc in enumerate((-1, 0, 1, 2)):
@@ -353,3 +376,172 @@ def _result(image, error, length, surface, info) -> Result:
     image = np.nan_to_num(image, nan=0.0, posinf=0.0, neginf=0.0)
     error = np.nan_to_num(error, nan=0.0, posinf=np.finfo(np.float64).max, neginf=0.0)
     return Result(image, error, History(image, error, length, surface), info)
+
+
+@dataclass
+class Accumulated:
+    """What :func:`accumulate` gives: the buffers a method reconstructs, the
+    input history to carry to the next frame, and counts for the frame's info."""
+
+    buffers: Buffers
+    history: History
+    info: dict
+
+
+def accumulate(buf: Buffers, history: History | None, coords: np.ndarray | None, camera_position,
+               params: Params | None = None) -> Accumulated:
+    """This frame's samples averaged with the previous frames' warped samples,
+    as Buffers any method reconstructs (``--temporal blend`` for denoisers).
+
+    Why: a denoiser fed one frame's samples leaves low-frequency residue that
+    differs per frame (flicker); blending its *outputs* cannot remove what
+    both outputs share.  Averaging the noisy *input* over frames, where the
+    surface is the same and the samples agree, gives the denoiser more
+    samples, as temporal accumulation before a denoiser does in real-time
+    renderers (Schied et al. 2017, SVGF).  Measured offline on the animated
+    scene (docs/notes/flicker.md): OIDN on the input accumulated over at
+    most 2 frames 0.91x relMSE and 0.83x temporal error of OIDN per frame;
+    longer histories lose (the carried, resampled samples have spatially
+    correlated noise that OIDN keeps as detail), hence ``input_frames``.
+
+    Per pixel, with ``C`` this frame's mean, ``v`` its variance of the mean
+    (RGB mean; unknown where fewer than two groups), ``n`` its samples:
+
+    1. both halves' accumulated means are warped together (:func:`warp`, the
+       same-surface taps); ``W`` is their mix in this frame's half shares;
+    2. change test ``d^2 <= z^2 (v~ + e~)`` (``d^2`` the RGB mean of ``(C -
+       W)^2``, ``~``: pooled over ``input_pool_radius``, at least the pixel's
+       own), as :func:`blend`'s step 2;
+    3. bias ``b^2 = max(d~^2 - v~ - e~, 0)`` added to the history's variance;
+    4. this frame's weight ``w = max(e_h / (v~ + e_h), n / (n + m))`` with
+       ``e_h = e~ + b^2`` and ``m = min(L, (input_frames - 1) n)`` the
+       history's samples ``L`` capped; each half ``w X + (1 - w) W_X``;
+    5. the buffers: the accumulated halves, their mean in this frame's half
+       shares, ``n / w`` samples (the effective count of the weighted mean),
+       the colour's M2 scaled so the variance of the mean is ``w^2 v + (1 -
+       w)^2 (e + b^2)`` per channel in proportion to this frame's, and this
+       frame's features (their variance of the mean unchanged).
+
+    The halves stay disjoint (half A's chain never meets half B's), so a
+    dual-buffer error estimate (core/oidn.py) still holds.  Without stored
+    halves (buffers read from a file) the whole mean is carried as both.
+    A frame where fewer than ``min_valid_fraction`` of the pixels find a
+    history starts over.  ``history`` None: the first frame (``buf`` is
+    returned as it is)."""
+    params = resolve(params or Params(), None)
+    h, w = buf.shape
+    n = np.asarray(buf.n, np.float64)
+    C = np.asarray(buf.color.mean, np.float64)
+    halves = buf.halves()
+    if halves is not None:
+        (na, ca, _), (nb, cb, _) = halves
+        with np.errstate(invalid="ignore", divide="ignore"):
+            share = np.where(n > 0, na / np.where(n > 0, n, 1.0), 0.5)
+    else:
+        ca = cb = C
+        share = np.full((h, w), 0.5)
+    with np.errstate(invalid="ignore"):
+        v = buf.variance_of_mean().mean(axis=-1)
+    known = np.isfinite(v) & (n > 0) & np.all(np.isfinite(C), axis=-1)
+    cur = np.concatenate([ca, cb], axis=-1)
+    surface = Surface.from_buffers(buf)
+    info = {"input_history_fraction": 0.0, "input_changed_fraction": 0.0, "input_history_weight": 0.0,
+            "input_cut": False}
+
+    def carried(halves6, var, samples):
+        halves6 = np.nan_to_num(halves6, nan=0.0, posinf=0.0, neginf=0.0)
+        var = np.where(known & np.isfinite(var), np.maximum(var, 0.0), np.inf)  # inf: warp drops the tap
+        return History(halves6, var, samples, surface)
+
+    if history is None or coords is None or h * w == 0 or params.input_frames <= 1:
+        return Accumulated(buf, carried(cur, v, n), info)
+    W6, e, L, valid, _ = warp(history, np.asarray(coords, np.float64), surface, camera_position, params)
+    if valid.mean() < params.min_valid_fraction:
+        info["input_cut"] = True
+        return Accumulated(buf, carried(cur, v, n), info)
+    e = np.maximum(e, 0.0)
+    ok = valid & known & np.isfinite(e)
+    if params.input_max_specular_share < 1.0:
+        ok &= ~(specular_share(buf) > params.input_max_specular_share)
+    WA, WB = W6[..., :3], W6[..., 3:]
+    W = share[..., None] * WA + (1.0 - share[..., None]) * WB
+    r = params.input_pool_radius
+
+    def pooled(x, where):
+        if r <= 0:
+            return x
+        p = box_mean_finite(np.where(where, x, np.nan), r)
+        return np.maximum(np.where(np.isfinite(p), p, x), x)
+
+    vz = np.where(known, v, 0.0)
+    vp = pooled(vz, known)
+    ep = pooled(e, ok)
+    d2 = np.mean((C - W) ** 2, axis=-1)
+    with np.errstate(invalid="ignore"):
+        use = ok & (d2 <= params.z ** 2 * (vp + ep))
+    changed = ok & ~use
+    d2p = box_mean_finite(np.where(use, d2, np.nan), r) if r > 0 else d2
+    d2p = np.where(np.isfinite(d2p), d2p, d2)
+    bias2 = np.maximum(d2p - vp - ep, 0.0)
+    eh = ep + bias2
+    m = np.where(use, np.minimum(L, (params.input_frames - 1) * n), 0.0)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        inv = np.where(vp + eh > 0, eh / np.where(vp + eh > 0, vp + eh, 1.0), 1.0)
+        floor = np.where(n + m > 0, n / np.where(n + m > 0, n + m, 1.0), 1.0)
+    wc = np.where(use, np.clip(np.maximum(inv, floor), 0.0, 1.0), 1.0)
+    wc3 = wc[..., None]
+    acc6 = np.where(use[..., None], wc3 * cur + (1.0 - wc3) * W6, cur)
+    var_acc = np.where(use, wc ** 2 * vz + (1.0 - wc) ** 2 * (e + bias2), v)
+    out = _accumulated_buffers(buf, acc6, share, wc, np.where(use, var_acc, v), v, use, halves is not None)
+    info.update(input_history_fraction=float(use.mean()), input_changed_fraction=float(changed.mean()),
+                input_history_weight=float(np.mean(1.0 - wc)))
+    return Accumulated(out, carried(acc6, var_acc, n + m), info)
+
+
+def _accumulated_buffers(buf: Buffers, acc6, share, wc, var_acc, var, use, with_halves: bool) -> Buffers:
+    """Buffers holding the accumulated halves (step 5 of :func:`accumulate`);
+    new arrays throughout (``buf`` is not changed); pixels outside ``use``
+    keep this frame's values exactly."""
+    from .buffers import Half, Stat
+    n = np.asarray(buf.n, np.float64)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        grow = np.where(wc > 0, 1.0 / np.where(wc > 0, wc, 1.0), 1.0)   # n' / n
+        ratio = np.where((var > 0) & np.isfinite(var), var_acc / np.where(var > 0, var, 1.0), 1.0)
+    ratio = np.where(np.isfinite(ratio), ratio, 1.0)
+    a, b = acc6[..., :3], acc6[..., 3:]
+    s = share[..., None]
+    mean = np.where(use[..., None], s * a + (1.0 - s) * b if with_halves else a, buf.color.mean)
+    color = Stat(mean, buf.color.m2 * (ratio * grow)[..., None])
+    feats = {k: Stat(st.mean, st.m2 * grow[..., None]) for k, st in buf.features.items()}
+    half = None
+    if with_halves:
+        half = Half(buf.half.n * grow, a, dict(buf.half.features))
+    return Buffers(n * grow, buf.k.copy(), color, feats, half, buf.exponent)
+
+
+#: light passes whose radiance is view-dependent (Cycles divides them by their ``_color`` pass)
+SPECULAR_PASSES = ("glossy", "transmission")
+
+
+def specular_share(buf: Buffers) -> np.ndarray:
+    """(H, W) share of view-dependent light, ``lum(glossy + transmission
+    radiance) / lum(combined)``, each radiance the light pass times its colour
+    pass (the light pass alone where the colour pass is missing: larger,
+    conservative); 0 where the buffers have neither pass, +inf where there is
+    view-dependent light but no positive combined luminance."""
+    from .buffers import luminance
+    h, w = buf.shape
+    vd = np.zeros((h, w))
+    for name in SPECULAR_PASSES:
+        st = buf.features.get(name)
+        if st is None:
+            continue
+        light = np.asarray(st.mean, np.float64)
+        col = buf.features.get(name + "_color")
+        rad = light * np.asarray(col.mean, np.float64) if col is not None and col.mean.shape == light.shape \
+            else light
+        with np.errstate(invalid="ignore"):
+            vd += np.maximum(np.nan_to_num(luminance(rad[..., :3]), nan=np.inf), 0.0)
+    lum = np.maximum(np.nan_to_num(luminance(np.asarray(buf.color.mean, np.float64)), nan=0.0), 0.0)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return np.where(vd > 0, np.where(lum > 0, vd / np.where(lum > 0, lum, 1.0), np.inf), 0.0)

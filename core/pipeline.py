@@ -267,7 +267,7 @@ class AdaptiveRun:
     """State of one adaptive render of one frame."""
 
     def __init__(self, executor, options: Options, checkpoint: str | None = None, prior=None,
-                 method: Method | None = None, started: float | None = None):
+                 method: Method | None = None, started: float | None = None, view_transform=None):
         """``method``: the :class:`core.method.Method` to run (default: the
         registered method ``options.method``; wrappers such as the oracle are
         passed here).  ``prior``: optional callable ``prior(buffers) -> Prior |
@@ -275,7 +275,12 @@ class AdaptiveRun:
         give the samples carried from earlier frames (:class:`Prior`).
         ``started``: the ``time.perf_counter()`` from which ``max_seconds``
         counts (default: the first call of :meth:`steps`; a job passes its own
-        start so the limit bounds its wall time, scene setup included)."""
+        start so the limit bounds its wall time, scene setup included).
+        ``view_transform``: optional ``f(buffers) -> Buffers`` (pure, new
+        arrays) applied to what the method reads (:attr:`view`): the frame's
+        samples with earlier frames' accumulated in
+        (``core.history.accumulate``), so the sampler and the reconstruction
+        both count them."""
         self.executor = executor
         self.options = options
         self.method = methods.method_for(options.method, options.params) if method is None else method
@@ -314,6 +319,8 @@ class AdaptiveRun:
         self.sampling_seconds = 0.0     # elapsed() when the sampling ended
         self.selection: dict | None = None  # what a selecting method (auto) chose, for reports
         self.dropped: tuple = ()            # feature passes found to carry no information
+        self.view_transform = view_transform
+        self._view = None                   # (key, Buffers) of the latest transformed view
         self.cryptomatte: dict = {}         # base -> CryptoAccumulator (merge_cryptomatte)
         self.cryptomatte_header: dict = {}  # base -> the renders' cryptomatte/<key>/ attributes
         self._cv: list = []                 # initial subsets on a selecting method's tiles
@@ -369,8 +376,15 @@ class AdaptiveRun:
     @property
     def view(self) -> Buffers:
         """The buffers as the method reads them: without the passes found to
-        carry no information (:attr:`dropped`)."""
-        return self.buffers.without(self.dropped)
+        carry no information (:attr:`dropped`), through ``view_transform``
+        (computed once per state of the samples)."""
+        view = self.buffers.without(self.dropped)
+        if self.view_transform is None:
+            return view
+        key = (id(self.buffers), float(self.buffers.n.sum()), self.dropped)
+        if self._view is None or self._view[0] != key:
+            self._view = (key, self.view_transform(view))
+        return self._view[1]
 
     @property
     def remaining(self) -> int:

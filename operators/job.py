@@ -501,7 +501,8 @@ class RenderJob:
                  overwrite: bool = False, resume: bool = False, preview: bool = True,
                  keep_checkpoint: bool = False, method=None, prior=None, reconstructor=None,
                  executor_factory=None, keep_denoise_passes: bool = True, compositor: bool = True,
-                 checkpoint: str | None = None, exr_depth: str = "scene", exr_contents: str = "full"):
+                 checkpoint: str | None = None, exr_depth: str = "scene", exr_contents: str = "full",
+                 view_transform=None):
         """``out``: the output EXR, or None to write nothing (no checkpoint,
         no outputs: the API); ``method``: a :class:`core.method.Method` object
         (default: the registered ``options.method``); ``prior``: the run's
@@ -516,7 +517,8 @@ class RenderJob:
         ``checkpoint``: the checkpoint of a job without ``out`` (one view
         layer of a :class:`LayersJob`, which writes the outputs itself);
         ``exr_depth``, ``exr_contents``: how the EXR stores its result
-        passes and which passes it keeps (:func:`exr_format`)."""
+        passes and which passes it keeps (:func:`exr_format`);
+        ``view_transform``: the run's (``core.pipeline.AdaptiveRun``)."""
         from ..addon import executor as ex
         self.ex = ex
         ex.check_scene(scene, view_layer)
@@ -546,6 +548,7 @@ class RenderJob:
         self.method = methods.method_for(options.method, options.params) if method is None else method
         self.prior = prior
         self.reconstructor = reconstructor
+        self.view_transform = view_transform
         self.executor_factory = executor_factory or ex.CyclesExecutor
         self.camera = None         # camera matrices of the rendered frame
         self.result = None         # the final MethodResult, once output() ran
@@ -567,7 +570,7 @@ class RenderJob:
         with self.executor:
             self.camera = self.executor.camera_info(self.options.frame)
             self.run = AdaptiveRun(self.executor, self.options, checkpoint=self.ckpt, prior=self.prior,
-                                   method=self.method, started=self.t0)
+                                   method=self.method, started=self.t0, view_transform=self.view_transform)
             probe = self._time_output if self.out else self.output_probe
             if probe is not None and self.run.timed:
                 self.run.reserve_probe = probe
@@ -1211,7 +1214,10 @@ class FramesJob:
       reconstruction (method must be ``lp``);
     - ``"blend"``: each frame's reconstruction is averaged with the previous
       frame's output, warped back, where both show the same surface and agree
-      within their estimated errors (core/history.py; any method).
+      within their estimated errors (core/history.py; any method); for
+      denoisers the frame's samples are first averaged with the previous
+      frames' warped samples (``core.history.accumulate``, up to
+      ``input_frames`` frames' worth) and the method reconstructs those.
     ``history_params``: core.history.Params of ``blend``.
     """
 
@@ -1253,6 +1259,8 @@ class FramesJob:
         self.temporal_params = params_from_dict(temporal_mod.Params, temporal_params)
         self.history_params = history.resolve(params_from_dict(history.Params, history_params), options.method)
         self._history = None  # core.history.History of the previous frame (blend)
+        self._input_history = None  # core.history.History of the previous frame's accumulated input (blend)
+        self._accumulation = None   # core.history.Accumulated of the frame in progress (blend)
         self.summaries: list = []
         self.job: RenderJob | None = None
         self._prev = None  # (buffers, camera dict, method state) of the previous frame
@@ -1281,6 +1289,8 @@ class FramesJob:
                 kw["reconstructor"] = self._lp_temporal
             elif self.temporal == "blend":
                 kw["reconstructor"] = self._blend
+                if self.history_params.input_frames > 1:
+                    kw["view_transform"] = self._accumulated
             if len(self.view_layers) > 1:
                 self.job = LayersJob(self.scene, self.view_layers, opts, frame_path(self.out_pattern, f),
                                      reference=ref, **kw)
@@ -1369,15 +1379,31 @@ class FramesJob:
         output (core/history.py)."""
         from ..core import history, reproject
         from ..core.method import MethodResult
-        static = run.method_reconstruction()
+        static = run.method_reconstruction()   # of the accumulated view, with input history
+        acc = self._accumulation if self.history_params.input_frames > 1 else None
+        if acc is not None:
+            self._input_history = acc.history
         coords = self._backward_coordinates(run.buffers) if self._history is not None else None
+        camera = reproject.Camera.from_render(self.job.camera).position
         res = history.blend(static.image, static.error, history.Surface.from_buffers(run.buffers),
-                            self._history, coords, reproject.Camera.from_render(self.job.camera).position,
-                            self.history_params)
+                            self._history, coords, camera, self.history_params)
         self._history = res.history
         info = dict(static.info)
         info.update({f"blend_{k}": float(v) for k, v in res.info.items()})
+        if acc is not None:
+            info.update({f"blend_{k}": float(v) for k, v in acc.info.items()})
         return MethodResult(res.image, res.error, info, static.dimension)
+
+    def _accumulated(self, view):
+        """The run's ``view_transform`` with input history: ``view`` with the
+        previous frames' samples accumulated in (``core.history.accumulate``);
+        the latest result is kept for :meth:`_blend`, which carries its
+        history on."""
+        from ..core import history, reproject
+        coords = self._backward_coordinates(view) if self._input_history is not None else None
+        camera = reproject.Camera.from_render(self.job.camera).position
+        self._accumulation = history.accumulate(view, self._input_history, coords, camera, self.history_params)
+        return self._accumulation.buffers
 
     @property
     def run(self):

@@ -352,6 +352,39 @@ def test_a_frame_without_history_is_the_method_alone(tmp_path, method):
     np.testing.assert_array_equal(images["blend"], images["none"])
 
 
+def test_blend_gives_a_denoiser_the_previous_frames_samples(tmp_path):
+    """``--temporal blend`` with oidn on a still scene: from frame 2 on the
+    method reconstructs this frame's samples with the previous frames'
+    accumulated in (most pixels find their history), and the frames
+    come out closer to a 512-spp render than the same frames without history;
+    ``input_frames = 1`` turns it off."""
+    from cycles_adaptive.core import metrics
+    from cycles_adaptive.operators.job import FramesJob
+    scene = build_scene(48, 32)
+    vl = bpy.context.view_layer
+    ref_job = RenderJob(scene, vl, Options(method="uniform", spp=512, seed=99), str(tmp_path / "ref.exr"),
+                        preview=False)
+    for _ in ref_job.steps():
+        pass
+    ref_job.finish()
+    ref = np.asarray(ref_job.result.image, np.float64)[..., :3]
+    opts = Options(method="oidn", spp=8, seed=5)
+    errors, infos = {}, {}
+    for name, temporal, hp in (("none", "none", None), ("input", "blend", {"max_frames": 1}),
+                               ("off", "blend", {"input_frames": 1, "max_frames": 1})):
+        fj = FramesJob(scene, vl, opts, str(tmp_path / f"{name}_####.exr"), [1, 2, 3], temporal=temporal,
+                       seed_mode="animated", preview=False, history_params=hp)
+        for item in fj.steps():
+            if isinstance(item, dict):
+                img = np.asarray(fj.job.result.image, np.float64)[..., :3]
+                errors.setdefault(name, []).append(metrics.relmse(img, ref))
+                infos.setdefault(name, []).append(dict(fj.job.result.info))
+    assert all(i["blend_input_history_fraction"] >= 0.75 for i in infos["input"][1:])
+    assert "blend_input_history_fraction" not in infos["off"][1]
+    np.testing.assert_allclose(errors["off"], errors["none"], rtol=1e-9)  # nothing carried, nothing blended
+    assert np.mean(errors["input"][1:]) < 0.9 * np.mean(errors["none"][1:])
+
+
 def test_an_image_only_exr_keeps_the_image_passes_and_denoise_refuses_it(tmp_path):
     """``exr_contents="image"``: the result, error, samples per pixel and the
     feature means, bit for bit as in the full file, and nothing else; a

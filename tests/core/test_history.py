@@ -314,3 +314,173 @@ def test_auto_resampling_follows_the_method():
     assert hi.resolve(hi.Params(), "uniform").resample == "bilinear"
     assert hi.resolve(hi.Params(), "oidn").resample == "catmull-rom"
     assert hi.resolve(hi.Params(resample="bilinear"), "lp").resample == "bilinear"
+    assert hi.resolve(hi.Params(), "oidn").input_frames == 2
+    assert hi.resolve(hi.Params(), "var").input_frames == 1
+    assert hi.resolve(hi.Params(input_frames=4), "uniform").input_frames == 4
+
+
+# ------------------------------------------------------- input accumulation
+def frame_buffers(truth, sd, rng, groups=8, per=2, surface=None, exact=True):
+    """Buffers of one frame of the plane: ``groups`` sample groups of ``per``
+    samples, each group's mean ``truth + N(0, sd^2 / per)``; ``exact``: the
+    colour's M2 set so the variance of the mean is the true one, sd^2 / n."""
+    s = surface or plane()
+    feats = {"position": s.position, "normal": s.normal}
+    colors = [truth + sd / np.sqrt(per) * rng.standard_normal(truth.shape) for _ in range(groups)]
+    buf = Buffers.from_subsets(colors, [per] * groups, [feats] * groups)
+    if exact:
+        n = groups * per
+        buf.color.m2 = np.full(truth.shape, sd ** 2 / n * (groups - 1) * n)
+    return buf
+
+
+def accumulate_sequence(truth, sd, frames, params, rng, shift=(0.0, 0.0)):
+    state, out = None, []
+    for _ in range(frames):
+        buf = frame_buffers(truth, sd, rng)
+        res = hi.accumulate(buf, state, identity(shift=shift), CAM, params)
+        state = res.history
+        out.append((buf, res))
+    return out
+
+
+def test_input_accumulation_first_frame_is_the_frame_and_two_frames_average():
+    """Frame 1 is returned as it is; with two frames of equal, exact variances
+    the accumulated buffers are their mean, half by half, with twice the
+    samples and half the variance of the mean, and the halves still add up
+    to the whole."""
+    rng = np.random.default_rng(10)
+    truth = np.full((H, W, 3), 0.5)
+    p = hi.Params(input_frames=2, input_pool_radius=8, z=100.0)  # wide: the bias of pure noise ~ 0
+    (b1, r1), (b2, r2) = accumulate_sequence(truth, 0.05, 2, p, rng)
+    assert r1.buffers is b1 and r1.info["input_history_fraction"] == 0.0
+    (na1, ca1, _), (nb1, cb1, _) = b1.halves()
+    (na2, ca2, _), (nb2, cb2, _) = b2.halves()
+    acc = r2.buffers
+    assert r2.info["input_history_fraction"] == 1.0
+    (na, ca, _), (nb, cb, _) = acc.halves()
+    # this frame's weight per pixel, n / n': 1/2 up to the (small) bias estimate of pure noise
+    w = (b2.n / acc.n)[..., None]
+    assert np.median(w) == pytest.approx(0.5, abs=1e-9) and np.mean(w) == pytest.approx(0.5, abs=0.01)
+    np.testing.assert_allclose(acc.color.mean, w * b2.color.mean + (1 - w) * b1.color.mean, rtol=1e-12)
+    np.testing.assert_allclose(ca, w * ca2 + (1 - w) * ca1, rtol=1e-12)
+    np.testing.assert_allclose(cb, w * cb2 + (1 - w) * cb1, rtol=1e-12)
+    np.testing.assert_allclose(na[..., None] * ca + nb[..., None] * cb, acc.n[..., None] * acc.color.mean,
+                               rtol=1e-12)
+    np.testing.assert_allclose(np.median(acc.n / b2.n), 2.0, rtol=0.03)
+    ratio = acc.variance_of_mean() / b2.variance_of_mean()
+    assert np.median(ratio) == pytest.approx(0.5, rel=0.05)
+    assert acc.features["normal"].mean is b2.features["normal"].mean  # this frame's features
+    np.testing.assert_allclose(acc.feature_variance("position"), b2.feature_variance("position"))
+    assert not np.shares_memory(acc.color.mean, b2.color.mean)  # the frame's buffers are not changed
+
+
+def test_input_history_is_bounded_and_its_error_follows():
+    """With ``input_frames = 2`` the current frame keeps at least half of the
+    weight: a static sequence settles at the moving average with factor 1/2,
+    whose variance is sd^2 / n * (1/2) / (2 - 1/2) = sd^2 / (3 n); the
+    reported variance of the mean says the same, and the halves stay
+    independent (their errors uncorrelated, as a dual-buffer estimate needs)."""
+    rng = np.random.default_rng(11)
+    truth = np.full((H, W, 3), 0.5)
+    sd = 0.05
+    out = accumulate_sequence(truth, sd, 10, hi.Params(input_frames=2, input_pool_radius=8, z=100.0), rng)
+    n = out[0][0].n[0, 0]
+    errs = [float(np.mean((r.buffers.color.mean - truth) ** 2)) for _, r in out[5:]]
+    assert np.mean(errs) == pytest.approx(sd ** 2 / (3 * n), rel=0.15)
+    reported = np.mean([np.median(r.buffers.variance_of_mean()) for _, r in out[5:]])
+    assert reported == pytest.approx(sd ** 2 / (3 * n), rel=0.15)
+    (_, ca, _), (_, cb, _) = out[-1][1].buffers.halves()
+    corr = np.corrcoef((ca - truth).ravel(), (cb - truth).ravel())[0, 1]
+    assert abs(corr) < 0.1
+    longer = accumulate_sequence(truth, sd, 10, hi.Params(input_frames=8, input_pool_radius=8, z=100.0), rng)
+    assert np.mean([np.mean((r.buffers.color.mean - truth) ** 2) for _, r in longer[7:]]) < 0.7 * np.mean(errs)
+
+
+def test_input_accumulation_off_and_on_a_change_keeps_the_frame():
+    """``input_frames = 1`` carries nothing; where the scene changed beyond
+    the errors the frame's own samples are kept exactly."""
+    rng = np.random.default_rng(12)
+    truth = np.full((H, W, 3), 0.5)
+    b1 = frame_buffers(truth, 0.01, rng)
+    first = hi.accumulate(b1, None, None, CAM, hi.Params())
+    changed = truth.copy()
+    changed[:, : W // 2] = 2.0
+    b2 = frame_buffers(changed, 0.01, rng)
+    off = hi.accumulate(b2, first.history, identity(), CAM, hi.Params(input_frames=1))
+    assert off.buffers is b2
+    res = hi.accumulate(b2, first.history, identity(), CAM, hi.Params(input_pool_radius=0))
+    left = (slice(None), slice(0, W // 2 - 1))
+    np.testing.assert_array_equal(res.buffers.color.mean[left], b2.color.mean[left])
+    np.testing.assert_array_equal(res.buffers.n[left], b2.n[left])
+    assert res.info["input_changed_fraction"] >= 0.45
+    right = (slice(None), slice(W // 2 + 1, None))
+    assert np.all(res.buffers.n[right] > b2.n[right])
+
+
+def test_input_accumulation_on_a_camera_cut_or_another_surface_starts_over():
+    rng = np.random.default_rng(13)
+    truth = np.full((H, W, 3), 0.5)
+    first = hi.accumulate(frame_buffers(truth, 0.01, rng), None, None, CAM)
+    b2 = frame_buffers(truth, 0.01, rng)
+    cut = hi.accumulate(b2, first.history, np.full((H, W, 2), np.nan), CAM)
+    assert cut.buffers is b2 and cut.info["input_cut"]
+    far = frame_buffers(truth, 0.01, rng, surface=plane(z=5.0))
+    other = hi.accumulate(far, first.history, identity(), CAM)
+    assert other.buffers is far and other.info["input_cut"]
+
+
+def test_input_accumulation_of_hostile_input_is_finite():
+    rng = np.random.default_rng(14)
+    truth = np.full((H, W, 3), 0.5)
+    b1 = frame_buffers(truth, 0.05, rng)
+    b1.color.mean[0, 0] = np.nan
+    b1.color.m2[1, 1] = np.inf
+    b1.k[2, 2] = 1.0  # no variance
+    b1.n[3, 3] = 0.0
+    first = hi.accumulate(b1, None, None, CAM)
+    assert np.all(np.isfinite(first.history.image)) and not np.any(np.isnan(first.history.error))
+    b2 = frame_buffers(truth, 0.05, rng)
+    b2.color.mean[4, 4] = np.inf
+    coords = identity()
+    coords[5, 5] = [np.inf, 1.0]
+    res = hi.accumulate(b2, first.history, coords, CAM)
+    acc = res.buffers
+    ok = np.ones((H, W), bool)
+    ok[4, 4] = False
+    assert np.all(np.isfinite(acc.color.mean[ok])) and np.all(np.isfinite(acc.n))
+    assert np.all(acc.n >= b2.n) and not np.any(np.isnan(acc.variance_of_mean()))
+    assert np.all(np.isfinite(res.history.image)) and not np.any(np.isnan(res.history.error))
+    # the pixels whose previous value was not usable keep this frame's samples
+    for r, c in ((0, 0), (1, 1), (2, 2), (3, 3), (5, 5)):
+        assert acc.n[r, c] == b2.n[r, c]
+
+
+def test_input_history_skips_mostly_specular_pixels():
+    """Where glossy light (light pass x colour pass) is most of the pixel's
+    luminance the samples are not carried (reflections move unlike their
+    surface); a share of 1 lifts the limit."""
+    rng = np.random.default_rng(15)
+    truth = np.full((H, W, 3), 0.5)
+    s = plane()
+    light = np.zeros((H, W, 3))
+    light[:, : W // 2] = 0.8     # x colour 0.5 = 0.4 of 0.5: share 0.8 on the left
+    light[:, W // 2:] = 0.2      # 0.1 of 0.5: share 0.2 on the right
+    feats = {"position": s.position, "normal": s.normal, "glossy": light, "glossy_color": np.full((H, W, 3), 0.5)}
+
+    def frame():
+        colors = [truth + 0.05 * rng.standard_normal(truth.shape) for _ in range(8)]
+        return Buffers.from_subsets(colors, [2] * 8, [feats] * 8)
+
+    b1 = frame()
+    share = hi.specular_share(b1)
+    assert np.median(share[:, : W // 2]) == pytest.approx(0.8, rel=0.2)
+    assert np.median(share[:, W // 2:]) == pytest.approx(0.2, rel=0.2)
+    first = hi.accumulate(b1, None, None, CAM)
+    b2 = frame()
+    res = hi.accumulate(b2, first.history, identity(), CAM, hi.Params(z=100.0))
+    np.testing.assert_array_equal(res.buffers.n[:, : W // 2], b2.n[:, : W // 2])
+    assert np.mean(res.buffers.n[:, W // 2:] > b2.n[:, W // 2:]) > 0.9
+    free = hi.accumulate(b2, first.history, identity(), CAM, hi.Params(z=100.0, input_max_specular_share=1.0))
+    assert np.mean(free.buffers.n[:, : W // 2] > b2.n[:, : W // 2]) > 0.9
+    assert not hi.specular_share(Buffers.from_subsets([truth] * 2, [2, 2], [{"position": s.position}] * 2)).any()

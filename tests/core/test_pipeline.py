@@ -474,3 +474,43 @@ def test_a_pass_missing_from_a_first_render_is_an_error():
     buf = Buffers.empty(4, 4, ("depth",))
     with pytest.raises(KeyError, match="depth"):
         merge_render(buf, RegionTask(0, 0, 4, 4, 1), np.ones((4, 4, 4)), {})
+
+
+def test_a_view_transform_is_what_the_sampler_and_the_reconstruction_read():
+    """``view_transform`` (the frame's samples with earlier frames' accumulated
+    in): where it says a pixel already holds four times the samples (a
+    quarter of the variance of the mean), var's sampler sends fewer new
+    samples there; the final image is the transformed view's mean; the
+    budget still counts rendered samples only; the transform runs once per
+    state of the samples."""
+    from core.buffers import Buffers, Stat
+    h, w = 16, 24
+    truth = np.full((h, w, 3), 0.5)
+    calls = []
+
+    def transform(view):
+        calls.append(float(view.n.sum()))
+        left = np.zeros((h, w), bool)
+        left[:, : w // 2] = True
+        grow = np.where(left, 4.0, 1.0)
+        mean = view.color.mean + np.where(left, 0.125, 0.0)[..., None]
+        color = Stat(mean, view.color.m2)   # with 4x the samples: the variance of the mean / 4 on the left
+        feats = {k: Stat(s.mean, s.m2 * grow[..., None]) for k, s in view.features.items()}
+        return Buffers(view.n * grow, view.k.copy(), color, feats, None, view.exponent)
+
+    opts = Options(method="var", spp=12, initial_spp=4, subsets=4, iterations=2, task_cost=0, min_task_size=1)
+    run = AdaptiveRun(FakeExecutor(truth), opts, view_transform=transform)
+    for _ in run.steps():
+        pass
+    n = run.buffers.n
+    assert n[:, : w // 2].mean() < 0.9 * n[:, w // 2:].mean()
+    budget = 12 * h * w
+    assert abs(run.samples_rendered - budget) <= 0.01 * budget + 1
+    res = run.reconstruct()
+    np.testing.assert_allclose(res.image[:, : w // 2].mean() - res.image[:, w // 2:].mean(), 0.125, atol=0.03)
+    assert len(calls) == len(set(calls))  # one call per state of the samples
+    plain = AdaptiveRun(FakeExecutor(truth), opts)
+    for _ in plain.steps():
+        pass
+    ratio = plain.buffers.n[:, : w // 2].mean() / plain.buffers.n[:, w // 2:].mean()
+    assert abs(ratio - 1.0) < 0.06
