@@ -82,9 +82,12 @@ class Params:
     z: float = param(3.0, "change test: the previous frame's output is dropped where it differs from this "
                      "frame's by more than this many (pooled) standard errors of the difference; smaller "
                      "reacts faster to moving light, larger reuses more", 0.0, 100.0, label="Change Test (sigma)")
-    max_frames: int = param(8, "longest history, in frames: this frame keeps at least 1/max_frames of the "
-                            "weight; larger averages more frames on static parts, smaller follows change "
-                            "sooner", 1, 1024, label="Max History (frames)")
+    max_frames: int = param(-1, "longest history of the output blend, in frames: this frame keeps at least "
+                            "1/max_frames of the weight; larger averages more frames on static parts, smaller "
+                            "follows change sooner; 1 = no output blend; -1 = auto: 8, or 1 for denoisers "
+                            "whose input carries the history (Input History > 1: consecutive outputs share "
+                            "those samples, and blending them again counted them twice: measured worse)",
+                            -1, 1024, label="Max History (frames)")
     pool_radius: int = param(-1, "radius of the window over which both error estimates are averaged before "
                              "the change test and the weights; 0 = per pixel; -1 = auto: 3 for methods whose "
                              "image is the sample mean (uniform, var: their per-pixel variance has few degrees "
@@ -118,10 +121,11 @@ class Params:
                               "2 for denoisers (oidn, lp, awr, rhf; longer histories made OIDN worse), 1 for "
                               "the sample mean (its output blend is the same thing)", -1, 64,
                               label="Input History (frames)")
-    input_max_specular_share: float = param(0.5, "the input history is not carried where glossy + "
+    input_max_specular_share: float = param(1.0, "the input history is not carried where glossy + "
                                             "transmission light exceeds this share of the pixel's luminance "
                                             "(reflections move unlike their surface; Schalk's reprojection "
-                                            "never reuses specular pixels); 1 = no limit", 0.0, 1.0,
+                                            "never reuses specular pixels); 1 = no limit (the default: 0.5 measured no better, the "
+                                            "change test already drops what moved)", 0.0, 1.0,
                                             label="Input Max Specular Share")
     input_pool_radius: int = param(1, "radius of the window over which the variances are averaged for the "
                                    "input history's change test and weights; 0 = per pixel", 0, 16,
@@ -139,14 +143,20 @@ def resolve(params: Params, method: str | None) -> Params:
     scene (docs/notes/flicker.md): uniform gains 0.66x relMSE with (3, 1)
     against 0.78x with (0, 0); oidn 0.96x with (0, 0) against 1.0x with
     (3, 1).  Catmull-Rom: uniform / var 0.8-0.9 % worse than bilinear (its
-    negative lobes pass more of the noise), lp / oidn 0.2-0.3 % better."""
+    negative lobes pass more of the noise), lp / oidn 0.2-0.3 % better.
+    Input history (-1): 2 frames for denoisers and ``None``, off for the
+    sample mean; the output blend's ``max_frames`` (-1): 1 for a denoiser
+    with input history, else 8 (``None``: a direct call of :func:`blend`)."""
     import dataclasses
     pooled = method in SAMPLE_MEAN_METHODS
     resample = params.resample if params.resample != "auto" else ("bilinear" if pooled else "catmull-rom")
+    input_frames = params.input_frames if params.input_frames >= 1 else (1 if pooled else 2)
     return dataclasses.replace(
         params, pool_radius=params.pool_radius if params.pool_radius >= 0 else (3 if pooled else 0),
         bias_radius=params.bias_radius if params.bias_radius >= 0 else (1 if pooled else 0), resample=resample,
-        input_frames=params.input_frames if params.input_frames >= 1 else (1 if pooled else 2))
+        input_frames=input_frames,
+        max_frames=params.max_frames if params.max_frames >= 1 else (1 if method is not None and input_frames > 1
+                                                                     else 8))
 
 
 @dataclass

@@ -127,10 +127,28 @@ def test_reference_floor_matches_simulation():
 
 
 def test_configurations_lp_only_with_lp_and_reproject_only_animated():
-    got = seq.configurations(["uniform", "lp"], ["none", "reproject", "lp"])
+    got = [c[:3] for c in seq.configurations(["uniform", "lp"], ["none", "reproject", "lp"])]
     assert ("uniform", "lp", "animated") not in got and ("lp", "lp", "animated") in got and len(got) == 5
-    both = seq.configurations(["uniform", "lp"], ["none", "reproject", "lp"], ["animated", "fixed"])
+    both = [c[:3] for c in seq.configurations(["uniform", "lp"], ["none", "reproject", "lp"], ["animated", "fixed"])]
     assert len(both) == 5 + 3 and ("lp", "reproject", "fixed") not in both and ("lp", "lp", "fixed") in both
+
+
+def test_history_variants_apply_to_blend_only_and_typos_fail_early():
+    """``--history``: each variant is one more blend run (named by its
+    settings); the other modes run once; an unknown key or a value out of
+    range is refused before any render."""
+    variants = seq.parse_history_variants("input_frames=1;max_frames=2,z=2.5;")
+    assert variants == [{"input_frames": 1}, {"max_frames": 2, "z": 2.5}, {}]
+    got = seq.configurations(["oidn"], ["none", "blend"], ["animated"], variants)
+    assert got == [("oidn", "none", "animated", {})] + [("oidn", "blend", "animated", v) for v in variants]
+    assert seq.history_label({"max_frames": 2, "z": 2.5}) == "[max_frames=2,z=2.5]"
+    assert seq.history_label({}) == "" and seq.parse_history_variants("") == [{}]
+    with pytest.raises(seq.SequenceError, match="unknown setting"):
+        seq.parse_history_variants("max_frame=2")
+    with pytest.raises(seq.SequenceError, match="z"):
+        seq.parse_history_variants("z=-1")
+    with pytest.raises(seq.SequenceError, match="key=value"):
+        seq.parse_history_variants("input_frames")
 
 
 def test_parse_frame_range():

@@ -89,7 +89,7 @@ def test_the_bias_estimate_of_pure_noise_is_conservative(method):
     rng = np.random.default_rng(7)
     truth = np.full((H, W, 3), 0.5)
     sd = 0.05
-    out = run_sequence(truth, sd, 4, hi.resolve(hi.Params(), method), rng)
+    out = run_sequence(truth, sd, 4, hi.resolve(hi.Params(input_frames=1), method), rng)  # the output blend
     for n, res in enumerate(out, 1):
         true = float(np.mean((res.image - truth) ** 2))
         assert float(np.mean(res.error)) >= 0.9 * true
@@ -138,7 +138,7 @@ def test_a_firefly_with_its_own_large_error_takes_the_history():
     sd = 0.01
     truth = np.full((H, W, 3), 0.5)
     err = np.full((H, W), sd ** 2)
-    params = hi.Params(pool_radius=3, bias_radius=1)
+    params = hi.Params(pool_radius=3, bias_radius=1, max_frames=8)
     first = hi.blend(noisy(truth, sd, rng), err, plane(), None, None, CAM, params)
     cur = noisy(truth, sd, rng)
     cur[12, 16] = 20.0
@@ -317,6 +317,12 @@ def test_auto_resampling_follows_the_method():
     assert hi.resolve(hi.Params(), "oidn").input_frames == 2
     assert hi.resolve(hi.Params(), "var").input_frames == 1
     assert hi.resolve(hi.Params(input_frames=4), "uniform").input_frames == 4
+    # the output blend: off for a denoiser whose input carries the history, else 8 frames
+    assert hi.resolve(hi.Params(), "oidn").max_frames == 1
+    assert hi.resolve(hi.Params(input_frames=1), "oidn").max_frames == 8
+    assert hi.resolve(hi.Params(), "uniform").max_frames == 8
+    assert hi.resolve(hi.Params(), None).max_frames == 8
+    assert hi.resolve(hi.Params(max_frames=3), "lp").max_frames == 3
 
 
 # ------------------------------------------------------- input accumulation
@@ -457,9 +463,9 @@ def test_input_accumulation_of_hostile_input_is_finite():
 
 
 def test_input_history_skips_mostly_specular_pixels():
-    """Where glossy light (light pass x colour pass) is most of the pixel's
-    luminance the samples are not carried (reflections move unlike their
-    surface); a share of 1 lifts the limit."""
+    """With a limit of 0.5: where glossy light (light pass x colour pass) is
+    most of the pixel's luminance the samples are not carried (reflections
+    move unlike their surface); a share of 1 (the default) lifts the limit."""
     rng = np.random.default_rng(15)
     truth = np.full((H, W, 3), 0.5)
     s = plane()
@@ -478,9 +484,9 @@ def test_input_history_skips_mostly_specular_pixels():
     assert np.median(share[:, W // 2:]) == pytest.approx(0.2, rel=0.2)
     first = hi.accumulate(b1, None, None, CAM)
     b2 = frame()
-    res = hi.accumulate(b2, first.history, identity(), CAM, hi.Params(z=100.0))
+    res = hi.accumulate(b2, first.history, identity(), CAM, hi.Params(z=100.0, input_max_specular_share=0.5))
     np.testing.assert_array_equal(res.buffers.n[:, : W // 2], b2.n[:, : W // 2])
     assert np.mean(res.buffers.n[:, W // 2:] > b2.n[:, W // 2:]) > 0.9
-    free = hi.accumulate(b2, first.history, identity(), CAM, hi.Params(z=100.0, input_max_specular_share=1.0))
+    free = hi.accumulate(b2, first.history, identity(), CAM, hi.Params(z=100.0))
     assert np.mean(free.buffers.n[:, : W // 2] > b2.n[:, : W // 2]) > 0.9
     assert not hi.specular_share(Buffers.from_subsets([truth] * 2, [2, 2], [{"position": s.position}] * 2)).any()
