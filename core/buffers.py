@@ -368,6 +368,19 @@ class Buffers:
             return None
         return self._halves_rows(0, self.height)
 
+    def color_halves(self):
+        """``((n_A, color_A), (n_B, color_B))``: :meth:`halves` of the colour
+        alone (the same values, without the feature passes' halves); None
+        where :meth:`halves` is None."""
+        if not self._halves_valid():
+            return None
+        h = self.half
+        nb = self.n - h.n
+        with np.errstate(invalid="ignore", over="ignore"):
+            cb = np.where(nb[..., None] > 0, (self.n[..., None] * self.color.mean - h.n[..., None] * h.color)
+                          / np.where(nb > 0, nb, 1.0)[..., None], 0.0)
+        return (h.n, h.color), (nb, cb)
+
     # -------------------------------------------------------------- statistics
     @property
     def has_variance(self) -> np.ndarray:

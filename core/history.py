@@ -267,27 +267,37 @@ def warp(history: History, coords: np.ndarray, current: Surface, camera_position
     foot = np.nan_to_num(current.footprint, nan=0.0)
     tol = params.tolerance * dist + params.pixels * foot
     prev = history.surface
+    # per previous pixel, flat: gathers by flat index (np.take) are the cost of every tap
+    usable = (np.all(np.isfinite(history.image), axis=-1) & np.isfinite(history.error)).ravel()
+    p_bg, p_pos = prev.background.ravel(), prev.position.reshape(-1, 3)
+    use_normal = params.normal_cos > -1.0 and prev.normal is not None and current.normal is not None
+    p_nrm = prev.normal.reshape(-1, 3) if use_normal else None
+    use_oi = prev.object_index is not None and current.object_index is not None
+    p_oi = prev.object_index.ravel() if use_oi else None
+    p_img = history.image.reshape(hp * wp, -1)
+    p_err, p_len = history.error.ravel(), history.length.ravel()
 
     def tap(dr, dc, outer=False):
-        """(kept, row, col) of the previous pixel at (r0 + dr, c0 + dc); an
+        """(kept, flat index) of the previous pixel at (r0 + dr, c0 + dc); an
         ``outer`` tap of the spline is up to 2 px from the point, and its
         position slack grows by its distance beyond half a pixel (in
         footprints), the margin an inner tap half a pixel away has."""
         rr, cc = r0 + dr, c0 + dc
         t = tol + np.maximum(np.hypot(dr - fr, dc - fc) - 0.5, 0.0) * foot if outer else tol
         ok = has & (rr >= 0) & (rr < hp) & (cc >= 0) & (cc < wp)
-        ri, ci = np.clip(rr, 0, max(hp - 1, 0)), np.clip(cc, 0, max(wp - 1, 0))
-        pbg = prev.background[ri, ci]
+        flat = np.clip(rr, 0, max(hp - 1, 0)) * wp + np.clip(cc, 0, max(wp - 1, 0))
+        pbg = np.take(p_bg, flat)
         with np.errstate(invalid="ignore"):
-            near = np.linalg.norm(prev.position[ri, ci] - current.position, axis=-1) <= t
+            d = np.take(p_pos, flat, axis=0) - current.position
+            near = np.einsum("...k,...k->...", d, d) <= t * t
             same = np.where(current.background, pbg, ~pbg & ~current.background & near)
-            if params.normal_cos > -1.0 and prev.normal is not None and current.normal is not None:
-                cos = np.sum(prev.normal[ri, ci] * current.normal, axis=-1)
+            if use_normal:
+                cos = np.einsum("...k,...k->...", np.take(p_nrm, flat, axis=0), current.normal)
                 same &= current.background | (cos >= params.normal_cos)
-            if prev.object_index is not None and current.object_index is not None:
-                same &= np.abs(prev.object_index[ri, ci] - current.object_index) <= params.object_tolerance
-        ok &= same & np.all(np.isfinite(history.image[ri, ci]), axis=-1) & np.isfinite(history.error[ri, ci])
-        return ok, ri, ci
+            if use_oi:
+                same &= np.abs(np.take(p_oi, flat) - current.object_index) <= params.object_tolerance
+        ok &= same & np.take(usable, flat)
+        return ok, flat
 
     img = np.zeros((h, w, history.image.shape[-1]))
     err = np.zeros((h, w))
@@ -298,13 +308,13 @@ def warp(history: History, coords: np.ndarray, current: Surface, camera_position
     hi = np.full(img.shape, -np.inf) if spline_on else None
     for dr, dc in ((0, 0), (0, 1), (1, 0), (1, 1)):
         bw = (fr if dr else 1.0 - fr) * (fc if dc else 1.0 - fc)
-        ok, ri, ci = tap(dr, dc)
+        ok, flat = tap(dr, dc)
         ok &= bw > 0
         wt = np.where(ok, bw, 0.0)
-        hv = np.where(ok[..., None], history.image[ri, ci], 0.0)
+        hv = np.where(ok[..., None], np.take(p_img, flat, axis=0), 0.0)
         img += wt[..., None] * hv
-        err += wt * np.where(ok, history.error[ri, ci], 0.0)
-        length += wt * np.where(ok, history.length[ri, ci], 0.0)
+        err += wt * np.where(ok, np.take(p_err, flat), 0.0)
+        length += wt * np.where(ok, np.take(p_len, flat), 0.0)
         wsum += wt
         if spline_on:  # the clamp range of the spline
             lo = np.where(ok[..., None], np.minimum(lo, hv), lo)
@@ -320,9 +330,10 @@ def warp(history: History, coords: np.ndarray, current: Surface, camera_position
         for i, dr in enumerate((-1, 0, 1, 2)):
             for j, dc in enumerate((-1, 0, 1, 2)):
                 wt = wr[i] * wc[j]
-                ok, ri, ci = tap(dr, dc, outer=True)
+                ok, flat = tap(dr, dc, outer=True)
                 whole &= ok | (wt == 0)
-                spline += np.where(ok, wt, 0.0)[..., None] * np.where(ok[..., None], history.image[ri, ci], 0.0)
+                spline += np.where(ok, wt, 0.0)[..., None] * np.where(ok[..., None], np.take(p_img, flat, axis=0),
+                                                                      0.0)
         img = np.where(whole[..., None], np.clip(spline, lo, hi), img)
     return img, err * inv, length * inv, valid, whole
 
@@ -343,7 +354,7 @@ def blend(image: np.ndarray, error: np.ndarray, current: Surface, history: Histo
     E = np.where(bad, max(big, 1.0), np.maximum(error, 0.0))
     info = {"history_fraction": 0.0, "changed_fraction": 0.0, "cut": False, "history_weight": 0.0,
             "spline_fraction": 0.0}
-    if history is None or coords is None or h * w == 0:
+    if history is None or coords is None or h * w == 0 or params.max_frames <= 1:  # 1: no output blend
         return _result(D, E, np.ones((h, w)), current, info)
     W, e, L, valid, spline = warp(history, np.asarray(coords, np.float64), current, camera_position, params)
     e = np.maximum(e, 0.0)
@@ -398,8 +409,8 @@ class Accumulated:
     info: dict
 
 
-def accumulate(buf: Buffers, history: History | None, coords: np.ndarray | None, camera_position,
-               params: Params | None = None) -> Accumulated:
+def accumulate(buf: Buffers, history: History | None, coords, camera_position,
+               params: Params | None = None, cache: dict | None = None) -> Accumulated:
     """This frame's samples averaged with the previous frames' warped samples,
     as Buffers any method reconstructs (``--temporal blend`` for denoisers).
 
@@ -437,14 +448,22 @@ def accumulate(buf: Buffers, history: History | None, coords: np.ndarray | None,
     halves (buffers read from a file) the whole mean is carried as both.
     A frame where fewer than ``min_valid_fraction`` of the pixels find a
     history starts over.  ``history`` None: the first frame (``buf`` is
-    returned as it is)."""
+    returned as it is).
+
+    ``coords``: the backward coordinates (:func:`warp`), or a callable giving
+    them (called only when the warp is computed).  ``cache``: a dict the
+    caller keeps over one frame's calls (the sampler reads the buffers after
+    every round): the warp, 20 taps of the same-surface test and most of the
+    cost, is reused until the frame's samples have doubled since it was
+    computed (the position and normal passes it tests change little with
+    more samples); steps 2-5 are recomputed on every call."""
     params = resolve(params or Params(), None)
     h, w = buf.shape
     n = np.asarray(buf.n, np.float64)
     C = np.asarray(buf.color.mean, np.float64)
-    halves = buf.halves()
+    halves = buf.color_halves()
     if halves is not None:
-        (na, ca, _), (nb, cb, _) = halves
+        (na, ca), (nb, cb) = halves
         with np.errstate(invalid="ignore", divide="ignore"):
             share = np.where(n > 0, na / np.where(n > 0, n, 1.0), 0.5)
     else:
@@ -465,7 +484,19 @@ def accumulate(buf: Buffers, history: History | None, coords: np.ndarray | None,
 
     if history is None or coords is None or h * w == 0 or params.input_frames <= 1:
         return Accumulated(buf, carried(cur, v, n), info)
-    W6, e, L, valid, _ = warp(history, np.asarray(coords, np.float64), surface, camera_position, params)
+    total = float(np.sum(n))
+    warped = None
+    if cache is not None and cache.get("history") is history and cache.get("shape") == (h, w) \
+            and total < 2.0 * cache.get("samples", -np.inf):
+        warped = cache["warp"]
+    if warped is None:
+        xy = coords() if callable(coords) else coords
+        if xy is None:
+            return Accumulated(buf, carried(cur, v, n), info)
+        warped = warp(history, np.asarray(xy, np.float64), surface, camera_position, params)
+        if cache is not None:
+            cache.update(history=history, shape=(h, w), samples=total, warp=warped)
+    W6, e, L, valid, _ = warped
     if valid.mean() < params.min_valid_fraction:
         info["input_cut"] = True
         return Accumulated(buf, carried(cur, v, n), info)

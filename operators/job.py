@@ -1261,6 +1261,7 @@ class FramesJob:
         self._history = None  # core.history.History of the previous frame (blend)
         self._input_history = None  # core.history.History of the previous frame's accumulated input (blend)
         self._accumulation = None   # core.history.Accumulated of the frame in progress (blend)
+        self._warp_cache: dict = {}  # accumulate's cache over the frame in progress
         self.summaries: list = []
         self.job: RenderJob | None = None
         self._prev = None  # (buffers, camera dict, method state) of the previous frame
@@ -1400,9 +1401,12 @@ class FramesJob:
         the latest result is kept for :meth:`_blend`, which carries its
         history on."""
         from ..core import history, reproject
-        coords = self._backward_coordinates(view) if self._input_history is not None else None
+        if self._warp_cache.get("frame") != self.job.options.frame:
+            self._warp_cache = {"frame": self.job.options.frame}
+        coords = (lambda: self._backward_coordinates(view)) if self._input_history is not None else None
         camera = reproject.Camera.from_render(self.job.camera).position
-        self._accumulation = history.accumulate(view, self._input_history, coords, camera, self.history_params)
+        self._accumulation = history.accumulate(view, self._input_history, coords, camera, self.history_params,
+                                                cache=self._warp_cache)
         return self._accumulation.buffers
 
     @property

@@ -490,3 +490,30 @@ def test_input_history_skips_mostly_specular_pixels():
     free = hi.accumulate(b2, first.history, identity(), CAM, hi.Params(z=100.0))
     assert np.mean(free.buffers.n[:, : W // 2] > b2.n[:, : W // 2]) > 0.9
     assert not hi.specular_share(Buffers.from_subsets([truth] * 2, [2, 2], [{"position": s.position}] * 2)).any()
+
+
+def test_the_warp_is_reused_within_a_frame_until_its_samples_double():
+    """``cache``: a second call of the same frame with under twice the samples
+    reuses the warp (the coordinates are not asked for again) and gives the
+    same buffers as a fresh call (the surface did not change); at twice the
+    samples the warp is computed again."""
+    rng = np.random.default_rng(16)
+    truth = np.full((H, W, 3), 0.5)
+    first = hi.accumulate(frame_buffers(truth, 0.05, rng), None, None, CAM)
+    asked = []
+
+    def coords():
+        asked.append(1)
+        return identity()
+
+    cache = {}
+    small = frame_buffers(truth, 0.05, rng, groups=4)
+    hi.accumulate(small, first.history, coords, CAM, cache=cache)
+    more = frame_buffers(truth, 0.05, rng, groups=6)
+    again = hi.accumulate(more, first.history, coords, CAM, cache=cache)
+    assert len(asked) == 1
+    fresh = hi.accumulate(more, first.history, identity(), CAM)
+    np.testing.assert_array_equal(again.buffers.color.mean, fresh.buffers.color.mean)
+    np.testing.assert_array_equal(again.buffers.n, fresh.buffers.n)
+    hi.accumulate(frame_buffers(truth, 0.05, rng, groups=8), first.history, coords, CAM, cache=cache)
+    assert len(asked) == 2

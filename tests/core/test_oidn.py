@@ -314,6 +314,13 @@ def test_halves_are_disjoint_groups_of_the_samples():
     np.testing.assert_allclose(c_b, np.concatenate(mine_b).mean(0), atol=1e-12)
     np.testing.assert_allclose(f_b["albedo"], 0.5 * np.concatenate(mine_b).mean(0), atol=1e-12)
     np.testing.assert_allclose(buf.copy().halves()[1][1], c_b)
+    (cn_a, cc_a), (cn_b, cc_b) = buf.color_halves()  # the colour alone: the same values
+    np.testing.assert_array_equal(cn_a, n_a)
+    np.testing.assert_array_equal(cn_b, n_b)
+    np.testing.assert_array_equal(cc_a, c_a)
+    np.testing.assert_allclose(cc_b, c_b, rtol=1e-15, atol=1e-15)
+    buf.half = None
+    assert buf.color_halves() is None and buf.halves() is None
 
 
 def test_merging_buffers_keeps_halves_disjoint_and_balanced():
