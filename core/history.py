@@ -54,10 +54,14 @@ Per frame (:func:`blend`):
    underestimate can do, and the benchmark reports the estimate's correlation
    with the true error as for every method.
 
-For denoisers the history also enters *before* the method:
+By default the history enters *before* the method instead:
 :func:`accumulate` averages this frame's noisy samples with the previous
 frames' (warped the same way, at most ``input_frames`` frames' worth), and
-the method reconstructs those buffers (its docstring has the steps).
+the method samples and reconstructs those buffers (its docstring has the
+steps); the output blend above then is off (``max_frames`` auto 1).  It
+runs with ``input_frames = 1`` (or an explicit ``max_frames``).  Measured
+(docs/notes/flicker.md): the input history gave lower per-frame and
+temporal error than the output blend for every method.
 
 A frame where fewer than ``min_valid_fraction`` of the pixels find a history
 (a camera cut) starts over everywhere.  Non-finite pixels of the current image
@@ -84,9 +88,9 @@ class Params:
                      "reacts faster to moving light, larger reuses more", 0.0, 100.0, label="Change Test (sigma)")
     max_frames: int = param(-1, "longest history of the output blend, in frames: this frame keeps at least "
                             "1/max_frames of the weight; larger averages more frames on static parts, smaller "
-                            "follows change sooner; 1 = no output blend; -1 = auto: 8, or 1 for denoisers "
-                            "whose input carries the history (Input History > 1: consecutive outputs share "
-                            "those samples, and blending them again counted them twice: measured worse)",
+                            "follows change sooner; 1 = no output blend; -1 = auto: 1 where the input "
+                            "carries the history (Input History > 1: consecutive outputs share those "
+                            "samples, and blending them again was measured worse), else 8",
                             -1, 1024, label="Max History (frames)")
     pool_radius: int = param(-1, "radius of the window over which both error estimates are averaged before "
                              "the change test and the weights; 0 = per pixel; -1 = auto: 3 for methods whose "
@@ -115,12 +119,12 @@ class Params:
                           choices=("auto", "catmull-rom", "bilinear"), label="Resampling")
     min_valid_fraction: float = param(0.01, "below this share of pixels with a history the frame counts as "
                                       "a camera cut and starts over", 0.0, 1.0, label="Min History Share")
-    input_frames: int = param(-1, "longest history of a denoiser's input, in frames' samples: the noisy "
+    input_frames: int = param(-1, "longest history of the method's input, in frames' samples: the noisy "
                               "samples of the previous frames, warped, are averaged into this frame's before "
-                              "the method runs, holding at most this many frames' worth; 1 = off; -1 = auto: "
-                              "2 for denoisers (oidn, lp, awr, rhf; longer histories made OIDN worse), 1 for "
-                              "the sample mean (its output blend is the same thing)", -1, 64,
-                              label="Input History (frames)")
+                              "the method samples and reconstructs, holding at most this many frames' worth; "
+                              "1 = off (then the outputs are blended instead); -1 = auto: 2 for denoisers "
+                              "(oidn, lp, awr, rhf; longer histories made OIDN worse), 4 for the sample mean "
+                              "(uniform, var)", -1, 64, label="Input History (frames)")
     input_max_specular_share: float = param(1.0, "the input history is not carried where glossy + "
                                             "transmission light exceeds this share of the pixel's luminance "
                                             "(reflections move unlike their surface; Schalk's reprojection "
@@ -144,13 +148,16 @@ def resolve(params: Params, method: str | None) -> Params:
     against 0.78x with (0, 0); oidn 0.96x with (0, 0) against 1.0x with
     (3, 1).  Catmull-Rom: uniform / var 0.8-0.9 % worse than bilinear (its
     negative lobes pass more of the noise), lp / oidn 0.2-0.3 % better.
-    Input history (-1): 2 frames for denoisers and ``None``, off for the
-    sample mean; the output blend's ``max_frames`` (-1): 1 for a denoiser
-    with input history, else 8 (``None``: a direct call of :func:`blend`)."""
+    Input history (-1): 2 frames for denoisers and ``None``, 4 for the
+    sample mean; the output blend's ``max_frames`` (-1): 1 (off) with input
+    history, else 8 (``None``: a direct call of :func:`blend`).  Measured
+    (docs/notes/flicker.md): the input history beats the output blend for
+    every method; OIDN lost with more than 2 frames, the sample mean gained
+    most with 4."""
     import dataclasses
     pooled = method in SAMPLE_MEAN_METHODS
     resample = params.resample if params.resample != "auto" else ("bilinear" if pooled else "catmull-rom")
-    input_frames = params.input_frames if params.input_frames >= 1 else (1 if pooled else 2)
+    input_frames = params.input_frames if params.input_frames >= 1 else (4 if pooled else 2)
     return dataclasses.replace(
         params, pool_radius=params.pool_radius if params.pool_radius >= 0 else (3 if pooled else 0),
         bias_radius=params.bias_radius if params.bias_radius >= 0 else (1 if pooled else 0), resample=resample,

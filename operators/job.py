@@ -1212,12 +1212,13 @@ class FramesJob:
     - ``"lp"``: LP's temporal extension (Moon 2015 Sec. 6, core/temporal.py):
       per-pixel lambda-weighted RLS over frames on top of each frame's LP
       reconstruction (method must be ``lp``);
-    - ``"blend"``: each frame's reconstruction is averaged with the previous
-      frame's output, warped back, where both show the same surface and agree
-      within their estimated errors (core/history.py; any method); for
-      denoisers the frame's samples are first averaged with the previous
-      frames' warped samples (``core.history.accumulate``, up to
-      ``input_frames`` frames' worth) and the method reconstructs those.
+    - ``"blend"`` (core/history.py; any method): the frame's samples are
+      averaged with the previous frames' samples, warped back, where both
+      show the same surface and agree within their errors
+      (``core.history.accumulate``, up to ``input_frames`` frames' worth),
+      and the method samples and reconstructs those; with ``input_frames =
+      1`` each frame's reconstruction is averaged with the previous frame's
+      output instead (``core.history.blend``).
     ``history_params``: core.history.Params of ``blend``.
     """
 

@@ -315,12 +315,13 @@ def test_auto_resampling_follows_the_method():
     assert hi.resolve(hi.Params(), "oidn").resample == "catmull-rom"
     assert hi.resolve(hi.Params(resample="bilinear"), "lp").resample == "bilinear"
     assert hi.resolve(hi.Params(), "oidn").input_frames == 2
-    assert hi.resolve(hi.Params(), "var").input_frames == 1
-    assert hi.resolve(hi.Params(input_frames=4), "uniform").input_frames == 4
-    # the output blend: off for a denoiser whose input carries the history, else 8 frames
+    assert hi.resolve(hi.Params(), "var").input_frames == 4
+    assert hi.resolve(hi.Params(input_frames=3), "uniform").input_frames == 3
+    # the output blend: off where the input carries the history, else 8 frames
     assert hi.resolve(hi.Params(), "oidn").max_frames == 1
     assert hi.resolve(hi.Params(input_frames=1), "oidn").max_frames == 8
-    assert hi.resolve(hi.Params(), "uniform").max_frames == 8
+    assert hi.resolve(hi.Params(), "uniform").max_frames == 1
+    assert hi.resolve(hi.Params(input_frames=1), "uniform").max_frames == 8
     assert hi.resolve(hi.Params(), None).max_frames == 8
     assert hi.resolve(hi.Params(max_frames=3), "lp").max_frames == 3
 
