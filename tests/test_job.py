@@ -308,16 +308,20 @@ def test_a_fixed_seed_with_reprojection_is_refused_and_auto_picks_the_seed_by_mo
                   [1, 2], temporal="reproject", seed_mode="fixed")
 
 
-def test_blend_averages_frames_of_a_static_scene_and_needs_the_animated_seed(tmp_path):
-    """``--temporal blend`` on a static scene: from the second frame on, the
-    previous output is found on (nearly) every pixel, the reported error falls
-    with the frames, and the image is finite; a fixed seed is refused, auto
-    picks the animated one."""
+@pytest.mark.parametrize("history_params, key", [({}, "blend_input_history_fraction"),
+                                                  ({"input_frames": 1}, "blend_history_fraction")])
+def test_blend_averages_frames_of_a_static_scene_and_needs_the_animated_seed(tmp_path, history_params, key):
+    """``--temporal blend`` on a static scene, with the input history (the
+    default) or blending the outputs: from the second frame on, the previous
+    frame is found on (nearly) every pixel, the reported error falls with the
+    frames, and the image is finite; a fixed seed is refused, auto picks the
+    animated one."""
     from cycles_adaptive.operators.job import FramesJob, JobError
     scene = build_scene(24, 16)
     vl = bpy.context.view_layer
     opts = Options(method="uniform", spp=4, initial_spp=4, subsets=2, seed=5)
-    fj = FramesJob(scene, vl, opts, str(tmp_path / "b_####.exr"), [1, 2, 3], temporal="blend", preview=False)
+    fj = FramesJob(scene, vl, opts, str(tmp_path / "b_####.exr"), [1, 2, 3], temporal="blend", preview=False,
+                   history_params=history_params)
     assert fj.seed_mode == "animated"
     infos, errors = [], []
     for item in fj.steps():
@@ -326,8 +330,8 @@ def test_blend_averages_frames_of_a_static_scene_and_needs_the_animated_seed(tmp
             assert np.all(np.isfinite(res.image))
             infos.append(dict(res.info))
             errors.append(float(np.median(res.error)))
-    assert "blend_history_fraction" in infos[0] and infos[0]["blend_history_fraction"] == 0.0
-    assert infos[1]["blend_history_fraction"] > 0.8 and infos[2]["blend_history_fraction"] > 0.8
+    assert key in infos[0] and infos[0][key] == 0.0
+    assert infos[1][key] > 0.8 and infos[2][key] > 0.8
     assert errors[2] < errors[1] < errors[0]
     with pytest.raises(JobError, match="needs --seed-mode animated"):
         FramesJob(scene, vl, opts, str(tmp_path / "c_####.exr"), [1, 2], temporal="blend", seed_mode="fixed")
