@@ -38,6 +38,27 @@ def test_matches_direct_loop():
     assert seq.temporal_error(frames, refs) == pytest.approx(_loop_temporal_error(frames, refs), rel=1e-12)
 
 
+def test_converged_temporal_error_leaves_out_the_least_converged_reference_pixels():
+    """``unconverged_pixels`` picks the pixels whose reference noise term is
+    largest (here the one pixel with a large variance), and the converged
+    temporal error is the direct loop over the other pixels."""
+    rng = np.random.default_rng(21)
+    frames, refs = _sequence(rng, t=4, h=10, w=10)
+    var = [np.full_like(r, 1e-4) for r in refs]
+    for v in var:
+        v[3, 7] = 1.0
+    frames[2][3, 7] += 50.0  # a pixel of huge flicker where the references are noisy
+    mask = seq.unconverged_pixels(refs, var, share=0.01)
+    assert mask.sum() == 1 and mask[3, 7]
+    keep = [np.delete(f.reshape(-1, 3), 37, axis=0)[None] for f in frames]
+    keep_r = [np.delete(r.reshape(-1, 3), 37, axis=0)[None] for r in refs]
+    got = seq.temporal_error(frames, refs, mask)
+    assert got == pytest.approx(_loop_temporal_error(keep, keep_r), rel=1e-12)
+    assert got < 0.1 * seq.temporal_error(frames, refs)
+    assert seq.sequence_figures(frames, refs, mask)["temporal_error_converged"] == got
+    assert seq.unconverged_pixels(refs[:1], var[:1]).sum() == 0   # one frame: no temporal error
+
+
 def test_extra_channels_are_ignored():
     rng = np.random.default_rng(2)
     frames, refs = _sequence(rng, c=4)
