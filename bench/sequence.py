@@ -86,7 +86,7 @@ def temporal_terms(x_prev, x, r_prev, r) -> np.ndarray:
     return np.where(np.isfinite(e), e, NONFINITE_TERM)
 
 
-def temporal_error(frames, refs_, exclude=None) -> float:
+def temporal_error(frames, refs_) -> float:
     """Temporal error (flicker) of a sequence against per-frame references.
 
     Mean over frames t = 2..T, pixels and RGB channels of
@@ -94,52 +94,47 @@ def temporal_error(frames, refs_, exclude=None) -> float:
     definition; the denominator is relMSE's).  Accumulated in float64 one
     frame pair at a time (memory: two frames).  Fewer than two frames have no
     frame-to-frame change: ValueError (the caller reports no figure).
-    ``exclude``: (H, W) bool, pixels left out (:func:`unconverged_pixels`).
     """
     _check_sequence(frames, refs_)
     if len(frames) < 2:
         raise ValueError("the temporal error needs at least two frames")
-    keep = None if exclude is None else ~np.asarray(exclude, bool)
     total, count = 0.0, 0
     for t in range(1, len(frames)):
         e = temporal_terms(frames[t - 1], frames[t], refs_[t - 1], refs_[t])
-        if keep is not None:
-            e = e[keep]
         total += float(e.sum(dtype=np.float64))
         count += e.size
     return total / count if count else 0.0
 
 
-#: share of the pixels left out of the "converged" temporal error
-UNCONVERGED_SHARE = 0.001
+#: share of each run's pixels left out of its trimmed temporal error
+TRIM_SHARE = 0.001
 
 
-def unconverged_pixels(refs_, variances, share: float = UNCONVERGED_SHARE) -> np.ndarray:
-    """(H, W) bool: the ``share`` of the pixels (at least one) whose
-    references are the least converged for the temporal error, by the
-    reference noise term of :func:`reference_floor` per pixel (mean over t >=
-    2 of the largest channel's ``(v_t + v_{t-1}) / (r_t^2 + 0.01)``).
+def trimmed_temporal_error(frames, refs_, share: float = TRIM_SHARE) -> float:
+    """The temporal error without the run's own ``share`` of pixels (at least
+    one) with the largest error: the mean over the other pixels of each
+    pixel's mean term (:func:`temporal_terms`, over frames t >= 2 and RGB),
+    a trimmed mean.
 
     Why: on the courtyard scene 87-95 % of every run's temporal error comes
-    from 0.1 % of the pixels (a sun glint on a moving chrome ball, where the
-    1024-spp references themselves are far from converged), so the full
-    figure ranks runs by a few pixels' noise (docs/notes/flicker.md).  The
-    choice uses the references alone, the same pixels for every run."""
-    _check_sequence(refs_, variances)
-    h, w = np.shape(refs_[0])[:2]
-    if len(refs_) < 2 or h * w == 0:
-        return np.zeros((h, w), bool)
+    from 0.1 % of the pixels, a sun glint on a moving chrome ball (one pixel
+    went from 0.2 to 64 and back in our frame 5, 22 in the reference), so the
+    full figure ranks runs by which of them a glint sample hit
+    (docs/notes/flicker.md).  Beside the full figure, never instead of it."""
+    _check_sequence(frames, refs_)
+    if len(frames) < 2:
+        raise ValueError("the temporal error needs at least two frames")
+    h, w = np.shape(frames[0])[:2]
     acc = np.zeros((h, w))
-    for t in range(1, len(refs_)):
-        r = _rgb(refs_[t])
-        with np.errstate(invalid="ignore", over="ignore"):
-            term = ((_rgb(variances[t]) + _rgb(variances[t - 1])) / (r * r + REL_EPS)).max(axis=-1)
-        acc += np.where(np.isfinite(term), term, np.inf)
-    k = max(1, int(round(share * h * w)))
-    order = np.argsort(acc.ravel(), kind="stable")[::-1][:k]
-    out = np.zeros(h * w, bool)
-    out[order] = True
-    return out.reshape(h, w)
+    for t in range(1, len(frames)):
+        acc += temporal_terms(frames[t - 1], frames[t], refs_[t - 1], refs_[t]).mean(axis=-1)
+    acc /= len(frames) - 1
+    flat = acc.ravel()
+    if flat.size == 0:
+        return 0.0
+    k = min(flat.size - 1, max(1, int(round(share * flat.size))))
+    keep = np.partition(flat, flat.size - k - 1)[:flat.size - k] if k > 0 else flat
+    return float(keep.mean(dtype=np.float64))
 
 
 def frame_relmse(frames, refs_) -> list:
@@ -148,17 +143,14 @@ def frame_relmse(frames, refs_) -> list:
     return [metrics.relmse(_rgb(x), _rgb(r)) for x, r in zip(frames, refs_)]
 
 
-def sequence_figures(frames, refs_, exclude=None) -> dict:
-    """Per-frame relMSE, their mean and the temporal error (None for one
-    frame); with ``exclude`` (:func:`unconverged_pixels`) also the temporal
-    error without those pixels (``temporal_error_converged``)."""
+def sequence_figures(frames, refs_) -> dict:
+    """Per-frame relMSE, their mean, the temporal error and its trimmed mean
+    (:func:`trimmed_temporal_error`; both None for one frame)."""
     per = frame_relmse(frames, refs_)
-    te = temporal_error(frames, refs_) if len(frames) >= 2 else None
-    out = {"relmse_per_frame": per, "relmse_mean": float(np.mean(per)) if per else None,
-           "temporal_error": te}
-    if exclude is not None:
-        out["temporal_error_converged"] = temporal_error(frames, refs_, exclude) if len(frames) >= 2 else None
-    return out
+    two = len(frames) >= 2
+    return {"relmse_per_frame": per, "relmse_mean": float(np.mean(per)) if per else None,
+            "temporal_error": temporal_error(frames, refs_) if two else None,
+            "temporal_error_trimmed": trimmed_temporal_error(frames, refs_) if two else None}
 
 
 def reference_floor(refs_, variances) -> dict:
@@ -430,11 +422,9 @@ def run_scene(name: str, cfg: dict, keep_images: bool = False, publish=None) -> 
     guard.set(scene.render, "resolution_percentage", pct)
     guard.set(scene.render, "use_persistent_data", True)
     floor = reference_floor(ref_rgb, ref_var)
-    exclude = unconverged_pixels(ref_rgb, ref_var)
     out = {"status": "ok", "file": path, "frames": frames, "width": shape[1], "height": shape[0],
            "reference": {"spp": int(spp), "seed": refs.REFERENCE_SEED, "noise_relmse": floor["relmse"],
                          "noise_temporal_error": floor["temporal_error"],
-                         "unconverged_pixels": int(exclude.sum()), "unconverged_share": UNCONVERGED_SHARE,
                          "render_seconds": float(sum(r.get("render_seconds") or 0.0 for r in recs)),
                          "seconds_this_session": t_ref}}
     log(f"{name}: {shape[1]}x{shape[0]}, frames {frames[0]}-{frames[-1]} ({len(frames)}), references "
@@ -451,7 +441,7 @@ def run_scene(name: str, cfg: dict, keep_images: bool = False, publish=None) -> 
             for m, t, sm, hv in configurations(cfg["methods"], cfg["temporal"], seed_modes, variants):
                 rec, imgs = run_ours(scene, vl, m, t, budget, frames, cfg["seed"], tmp,
                                      cfg["run_max_seconds"], sm, hv)
-                runs.append(_judge(rec, imgs, ref_rgb, images, keep_images, exclude))
+                runs.append(_judge(rec, imgs, ref_rgb, images, keep_images))
                 publish(out)
                 if rec["status"] == "ok":
                     ours.extend(rec["seconds_per_frame"])
@@ -460,7 +450,7 @@ def run_scene(name: str, cfg: dict, keep_images: bool = False, publish=None) -> 
                 for sm in seed_modes:
                     for rec, imgs in run_peers(scene, vl, budget, frames, cfg["seed"], ref_rgb[0], target, cfg,
                                                sm):
-                        runs.append(_judge(rec, imgs, ref_rgb, images, keep_images, exclude))
+                        runs.append(_judge(rec, imgs, ref_rgb, images, keep_images))
                         publish(out)
     finally:
         guard.restore()
@@ -471,17 +461,17 @@ def run_scene(name: str, cfg: dict, keep_images: bool = False, publish=None) -> 
     return out
 
 
-def _judge(rec, imgs, ref_rgb, images, keep, exclude=None) -> dict:
+def _judge(rec, imgs, ref_rgb, images, keep) -> dict:
     """Add the sequence figures to a run's record (and log one line)."""
     if rec.get("status") == "ok" and imgs is not None:
-        fig = sequence_figures(imgs, ref_rgb, exclude)
+        fig = sequence_figures(imgs, ref_rgb)
         rec.update({k: (finite(v) if not isinstance(v, list) else [finite(x) for x in v])
                     for k, v in fig.items()})
         if keep:
             images[f"{rec['name']}@{rec['budget']}"] = imgs
-        conv = rec.get("temporal_error_converged")
+        trim = rec.get("temporal_error_trimmed")
         log(f"  {rec['name']:>22} @ {rec['budget']:3d}: relMSE {rec['relmse_mean']:.3e}, temporal "
-            f"{rec['temporal_error']:.3e}" + ("" if conv is None else f" (converged pixels {conv:.3e})")
+            f"{rec['temporal_error']:.3e}" + ("" if trim is None else f" (trimmed {trim:.3e})")
             + f", {rec['seconds']:.1f} s")
     else:
         log(f"  {rec['name']:>22} @ {rec['budget']:3d}: ERROR {rec.get('error')}")
@@ -509,10 +499,9 @@ def markdown(res: dict) -> str:
                   f"{len(d['frames'])} frames)", "",
                   f"References: {r['spp']} spp, seed {r['seed']}; noise floor (a perfect sequence "
                   f"against them): relMSE {r['noise_relmse']:.2e}, temporal error "
-                  f"{r['noise_temporal_error']:.2e}. Temporal error (converged): without the "
-                  f"{r.get('unconverged_pixels', '?')} pixels whose references are the least converged "
-                  f"({100 * r.get('unconverged_share', UNCONVERGED_SHARE):g} %; the same pixels for every run).", "",
-                  "| kind | run | temporal | spp | relMSE (mean) | temporal error | TE (converged) | seconds | "
+                  f"{r['noise_temporal_error']:.2e}. TE (trimmed): without each run's own "
+                  f"{100 * TRIM_SHARE:g} % of pixels with the largest temporal error.", "",
+                  "| kind | run | temporal | spp | relMSE (mean) | temporal error | TE (trimmed) | seconds | "
                   "s/frame | reused | per-frame relMSE |", "|---|---|---|---:|---:|---:|---:|---:|---:|---:|---|"]
         for x in d["runs"]:
             if x.get("status") != "ok":
@@ -522,7 +511,7 @@ def markdown(res: dict) -> str:
                 continue
             per = " ".join(f"{v:.3g}" for v in x["relmse_per_frame"])
             reused = x.get("reprojected_fraction")
-            conv = x.get("temporal_error_converged")
+            conv = x.get("temporal_error_trimmed")
             lines.append(f"| {x.get('kind')} | {x['name']} | {x.get('temporal', 'none')} | {x['budget']} | "
                          f"{x['relmse_mean']:.3e} | {x['temporal_error']:.3e} | "
                          f"{'' if conv is None else f'{conv:.3e}'} | {x['seconds']:.1f} | "

@@ -38,25 +38,22 @@ def test_matches_direct_loop():
     assert seq.temporal_error(frames, refs) == pytest.approx(_loop_temporal_error(frames, refs), rel=1e-12)
 
 
-def test_converged_temporal_error_leaves_out_the_least_converged_reference_pixels():
-    """``unconverged_pixels`` picks the pixels whose reference noise term is
-    largest (here the one pixel with a large variance), and the converged
-    temporal error is the direct loop over the other pixels."""
+def test_trimmed_temporal_error_leaves_out_the_runs_worst_pixels():
+    """The trimmed figure is the direct loop over every pixel but the run's
+    own worst ``share`` (here one pixel of a huge flicker): far below the full
+    figure, and near the trimmed figure of the same frames without it."""
     rng = np.random.default_rng(21)
     frames, refs = _sequence(rng, t=4, h=10, w=10)
-    var = [np.full_like(r, 1e-4) for r in refs]
-    for v in var:
-        v[3, 7] = 1.0
-    frames[2][3, 7] += 50.0  # a pixel of huge flicker where the references are noisy
-    mask = seq.unconverged_pixels(refs, var, share=0.01)
-    assert mask.sum() == 1 and mask[3, 7]
+    plain = seq.trimmed_temporal_error(frames, refs, share=0.01)
+    frames[2][3, 7] += 50.0
+    got = seq.trimmed_temporal_error(frames, refs, share=0.01)
     keep = [np.delete(f.reshape(-1, 3), 37, axis=0)[None] for f in frames]
     keep_r = [np.delete(r.reshape(-1, 3), 37, axis=0)[None] for r in refs]
-    got = seq.temporal_error(frames, refs, mask)
     assert got == pytest.approx(_loop_temporal_error(keep, keep_r), rel=1e-12)
     assert got < 0.1 * seq.temporal_error(frames, refs)
-    assert seq.sequence_figures(frames, refs, mask)["temporal_error_converged"] == got
-    assert seq.unconverged_pixels(refs[:1], var[:1]).sum() == 0   # one frame: no temporal error
+    assert got == pytest.approx(plain, rel=0.15)
+    assert seq.sequence_figures(frames, refs)["temporal_error_trimmed"] == got
+    assert seq.sequence_figures(frames[:1], refs[:1])["temporal_error_trimmed"] is None
 
 
 def test_extra_channels_are_ignored():
