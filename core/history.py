@@ -540,7 +540,7 @@ def accumulate(buf: Buffers, history: History | None, coords, camera_position,
     wc3 = wc[..., None]
     acc6 = np.where(use[..., None], wc3 * cur + (1.0 - wc3) * W6, cur)
     var_acc = np.where(use, wc ** 2 * vz + (1.0 - wc) ** 2 * (e + bias2), v)
-    out = _accumulated_buffers(buf, acc6, share, wc, np.where(use, var_acc, v), v, use, halves is not None)
+    out = _accumulated_buffers(buf, acc6, share, wc, var_acc, v, use, halves is not None)
     info.update(input_history_fraction=float(use.mean()), input_changed_fraction=float(changed.mean()),
                 input_history_weight=float(np.mean(1.0 - wc)))
     return Accumulated(out, carried(acc6, var_acc, n + m), info)

@@ -1377,15 +1377,18 @@ class FramesJob:
                                               buffers, prev_buf.shape)
 
     def _blend(self, run):
-        """Final reconstruction of a frame blended with the previous frame's
-        output (core/history.py)."""
+        """Final reconstruction of a frame: the method's, of the view with the
+        input history (:meth:`_accumulated`), which is then carried on; blended
+        with the previous frame's output where the output blend is on
+        (core/history.py)."""
         from ..core import history, reproject
         from ..core.method import MethodResult
         static = run.method_reconstruction()   # of the accumulated view, with input history
         acc = self._accumulation if self.history_params.input_frames > 1 else None
         if acc is not None:
             self._input_history = acc.history
-        coords = self._backward_coordinates(run.buffers) if self._history is not None else None
+        blending = self._history is not None and self.history_params.max_frames > 1  # else blend() returns D
+        coords = self._backward_coordinates(run.buffers) if blending else None
         camera = reproject.Camera.from_render(self.job.camera).position
         res = history.blend(static.image, static.error, history.Surface.from_buffers(run.buffers),
                             self._history, coords, camera, self.history_params)
