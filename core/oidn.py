@@ -83,7 +83,10 @@ from .method import MethodResult, allocate, exact_pixels, param
 from .metrics import REL_EPS
 
 NAME = "oidn"
-PASSES: tuple = ("albedo", "normal")
+#: albedo and normal guide OIDN; depth (with them) guides the pooling of the variance its error estimate
+#: reads (``Buffers.calibrated_variance``): declared, so the result never depends on which other passes a
+#: job happens to render (a depth pass rendered for ``--temporal`` changed the sample maps)
+PASSES: tuple = ("albedo", "normal", "depth")
 ADAPTIVE = True
 SAMPLER_USES_RESULT = True
 

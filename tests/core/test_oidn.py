@@ -349,7 +349,30 @@ def test_the_module_and_its_uniform_variant_declare_the_contract():
     assert oidn.ADAPTIVE and not oidn.UNIFORM.ADAPTIVE and oidn.NAME == "oidn"
     assert oidn.method_for(oidn.Params(adaptive=False)) is oidn.UNIFORM
     assert oidn.method_for({"adaptive": True}) is oidn
-    assert oidn.PASSES == ("albedo", "normal")
+    assert oidn.PASSES == ("albedo", "normal", "depth")
+
+
+@needs_pyoidn
+def test_the_result_does_not_depend_on_passes_it_does_not_declare():
+    """Reconstruction and sample map are the same with an extra pass in the
+    buffers (a job rendering ``position`` for ``--temporal``): everything the
+    method reads, the variance's pooling guides included, is in ``PASSES``."""
+    rng = np.random.default_rng(31)
+    h, w = 24, 32
+    truth = np.linspace(0.1, 2.0, h * w * 3).reshape(h, w, 3)
+    feats = {"albedo": np.full((h, w, 3), 0.5), "normal": np.dstack([np.zeros((h, w, 2)), np.ones((h, w))]),
+             "depth": np.linspace(1.0, 3.0, h * w).reshape(h, w, 1)}
+    groups = [truth * (1 + 0.3 * rng.standard_normal(truth.shape)) for _ in range(4)]
+    extra = dict(feats, position=rng.random((h, w, 3)))
+    plain = Buffers.from_subsets(groups, [2] * 4, [feats] * 4)
+    more = Buffers.from_subsets(groups, [2] * 4, [extra] * 4)
+    a, b = oidn.reconstruct(plain), oidn.reconstruct(more)
+    np.testing.assert_array_equal(a.image, b.image)
+    np.testing.assert_array_equal(a.error, b.error)
+    np.testing.assert_array_equal(oidn.sample_map(plain, a, 4 * h * w, None, {}),
+                                  oidn.sample_map(more, b, 4 * h * w, None, {}))
+    bare = Buffers.from_subsets(groups, [2] * 4, [{k: v for k, v in feats.items() if k != "depth"}] * 4)
+    assert not np.array_equal(oidn.reconstruct(bare).error, a.error)  # depth does guide the estimate
 
 
 @needs_pyoidn
@@ -371,7 +394,8 @@ def test_adaptive_run_spends_the_budget_and_the_uniform_variant_samples_evenly(f
     h, w = 32, 32
     truth = _truth(h, w)
     feats = {"albedo": np.clip(truth, 0, 1), "normal": np.dstack([np.zeros((h, w))] * 2 +
-                                                                  [np.ones((h, w))])}
+                                                                  [np.ones((h, w))]),
+             "depth": np.ones((h, w, 1))}
     opts = Options(method="uniform", spp=8, initial_spp=4, iterations=3, seed=1, min_task_size=4,
                    task_cost=0.0)
     run = AdaptiveRun(fake_executor(truth, feats), opts, method=oidn)
@@ -477,7 +501,8 @@ def test_the_loop_places_samples_by_the_map_estimate_and_ends_with_the_full_reco
     the fast estimate)."""
     h, w = 16, 16
     truth = _truth(h, w)
-    feats = {"albedo": np.clip(truth, 0, 1), "normal": np.dstack([np.zeros((h, w))] * 2 + [np.ones((h, w))])}
+    feats = {"albedo": np.clip(truth, 0, 1), "normal": np.dstack([np.zeros((h, w))] * 2 + [np.ones((h, w))]),
+             "depth": np.ones((h, w, 1))}
     calls = []
     _recording_filter(monkeypatch, calls)
     opts = Options(method="oidn", spp=8, initial_spp=4, iterations=3, seed=1, min_task_size=4, task_cost=0.0)
