@@ -340,8 +340,9 @@ class Buffers:
             return False
         return bool(np.all((h.n >= 0) & (h.n <= self.n)))
 
-    def _halves_rows(self, r0: int, r1: int):
-        """:meth:`halves` on rows ``r0:r1`` (validity not checked)."""
+    def _halves_rows(self, r0: int, r1: int, features: bool = True):
+        """:meth:`halves` on rows ``r0:r1`` (validity not checked); without
+        the feature passes' halves (empty dicts) unless ``features``."""
         h = self.half
         n, hn = self.n[r0:r1], h.n[r0:r1]
         nb = n - hn
@@ -351,7 +352,7 @@ class Buffers:
         with np.errstate(invalid="ignore", over="ignore"):
             cb = rest(self.color.mean[r0:r1], h.color[r0:r1])
             fa, fb = {}, {}
-            for name, arr in h.features.items():
+            for name, arr in (h.features.items() if features else ()):
                 st = self.features.get(name)
                 if st is None or st.mean.shape != arr.shape:
                     continue
@@ -374,12 +375,8 @@ class Buffers:
         where :meth:`halves` is None."""
         if not self._halves_valid():
             return None
-        h = self.half
-        nb = self.n - h.n
-        with np.errstate(invalid="ignore", over="ignore"):
-            cb = np.where(nb[..., None] > 0, (self.n[..., None] * self.color.mean - h.n[..., None] * h.color)
-                          / np.where(nb > 0, nb, 1.0)[..., None], 0.0)
-        return (h.n, h.color), (nb, cb)
+        (na, ca, _), (nb, cb, _) = self._halves_rows(0, self.height, features=False)
+        return (na, ca), (nb, cb)
 
     # -------------------------------------------------------------- statistics
     @property

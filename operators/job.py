@@ -1262,7 +1262,7 @@ class FramesJob:
         self._history = None  # core.history.History of the previous frame (blend)
         self._input_history = None  # core.history.History of the previous frame's accumulated input (blend)
         self._accumulation = None   # core.history.Accumulated of the frame in progress (blend)
-        self._warp_cache: dict = {}  # accumulate's cache over the frame in progress
+        self._warp_cache: dict = {}  # accumulate's cache (it holds the history it warped: one frame's)
         self.summaries: list = []
         self.job: RenderJob | None = None
         self._prev = None  # (buffers, camera dict, method state) of the previous frame
@@ -1384,7 +1384,7 @@ class FramesJob:
         from ..core import history, reproject
         from ..core.method import MethodResult
         static = run.method_reconstruction()   # of the accumulated view, with input history
-        acc = self._accumulation if self.history_params.input_frames > 1 else None
+        acc = self._accumulation   # None without input history
         if acc is not None:
             self._input_history = acc.history
         blending = self._history is not None and self.history_params.max_frames > 1  # else blend() returns D
@@ -1405,8 +1405,6 @@ class FramesJob:
         the latest result is kept for :meth:`_blend`, which carries its
         history on."""
         from ..core import history, reproject
-        if self._warp_cache.get("frame") != self.job.options.frame:
-            self._warp_cache = {"frame": self.job.options.frame}
         coords = (lambda: self._backward_coordinates(view)) if self._input_history is not None else None
         camera = reproject.Camera.from_render(self.job.camera).position
         self._accumulation = history.accumulate(view, self._input_history, coords, camera, self.history_params,
