@@ -16,13 +16,23 @@ def sample_values(truth, ys, xs, index):
     return base * (1.0 + 0.8 * noise[..., None])
 
 
+def flat_guides(h, w):
+    """Noise-free guide passes of one flat surface facing the camera (grey
+    albedo, normal +z, depth 1): what the fake renders unless given others."""
+    return {"albedo": np.full((h, w, 3), 0.5), "normal": np.dstack([np.zeros((h, w, 2)), np.ones((h, w))]),
+            "depth": np.ones((h, w, 1))}
+
+
 class FakeExecutor:
-    """Renders (x0, y0, x1, y1, samples, offset) tasks of a synthetic image."""
+    """Renders (x0, y0, x1, y1, samples, offset) tasks of a synthetic image.
+    ``features``: name -> (H, W, C) pass values; the guides a method may read
+    (albedo, normal, depth) default to :func:`flat_guides`, as a job renders
+    them for every method."""
 
     def __init__(self, truth, features=None):
         self.truth = np.asarray(truth, np.float64)
         self.size = self.truth.shape[:2]
-        self.features = features or {}
+        self.features = dict(flat_guides(*self.size), **(features or {}))
         self.tasks = []
 
     def render(self, task):

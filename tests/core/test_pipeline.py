@@ -2,7 +2,7 @@ import numpy as np
 import pytest
 
 from core.pipeline import AdaptiveRun, Options
-from conftest import FakeExecutor, sample_values
+from conftest import FakeExecutor, flat_guides, sample_values
 
 
 def _truth(h, w, seed=0):
@@ -149,7 +149,7 @@ def test_prior_samples_are_merged_reused_and_not_charged_to_the_budget():
     h, w = 16, 20
     truth = _truth(h, w)
     seen = {}
-    ones = {"alpha": np.ones((h, w, 1))}
+    ones = dict(flat_guides(h, w), alpha=np.ones((h, w, 1)))
     carried = Buffers.from_subsets([truth, truth * 1.01], [3, 3], [ones, ones])
 
     def prior(buffers):
