@@ -20,6 +20,7 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import glob
+import hashlib
 import json
 import os
 import re
@@ -226,6 +227,8 @@ def history_label(params: dict) -> str:
 def run_ours(scene, vl, method: str, temporal: str, budget: int, frames, seed: int, tmpdir: str,
              max_seconds: float = 0.0, seed_mode: str = "animated", history_params: dict | None = None) -> tuple:
     """One sequence of our loop through FramesJob; (record, list of images).
+    ``method``: a method spec of ``--methods`` (a name, optionally with its
+    parameters: ``oidn[adaptive=False]``, :func:`parse_method_spec`);
     ``history_params``: core.history.Params of ``blend`` (a ``--history``
     variant; its settings join the run's name).
 
@@ -234,16 +237,21 @@ def run_ours(scene, vl, method: str, temporal: str, budget: int, frames, seed: i
     from ..core.pipeline import Options
     from ..operators.job import FramesJob
     history_params = dict(history_params or {}) if temporal == "blend" else {}
-    name = (method if temporal == "none" else f"{method}+{temporal}") + history_label(history_params)
+    method_name, method_params = parse_method_spec(method)
+    label = method_name + history_label(method_params)
+    name = (label if temporal == "none" else f"{label}+{temporal}") + history_label(history_params)
     rec = {"kind": "method", "name": _seeded(name, seed_mode),
-           "method": method, "temporal": temporal, "budget": int(budget), "seed_mode": seed_mode}
+           "method": method_name, "temporal": temporal, "budget": int(budget), "seed_mode": seed_mode}
+    if method_params:
+        rec["method_params"] = method_params
     if history_params:
         rec["history_params"] = history_params
     images, seconds, spp, reused = [], [], [], []
     try:
-        opts = Options(method=method, spp=float(budget), frame=int(frames[0]), seed=int(seed),
-                       max_seconds=float(max_seconds))
-        pattern = os.path.join(tmpdir, f"{method}_{temporal}_{seed_mode}_####.exr")
+        opts = Options(method=method_name, spp=float(budget), frame=int(frames[0]), seed=int(seed),
+                       max_seconds=float(max_seconds), params=dict(method_params))
+        tag = hashlib.sha1(method.encode()).hexdigest()[:8]
+        pattern = os.path.join(tmpdir, f"{method_name}_{tag}_{temporal}_{seed_mode}_####.exr")
         fj = FramesJob(scene, vl, opts, pattern, frames, temporal=temporal, overwrite=True,
                        preview=False, keep_denoise_passes=False, seed_mode=seed_mode,
                        history_params=history_params)
@@ -348,7 +356,69 @@ def configurations(methods, temporals, seed_modes=("animated",), history_variant
     animated_only = FramesJob.NEEDS_ANIMATED_SEED
     return [(m, t, sm, hv) for sm in seed_modes for m in methods for t in temporals
             for hv in (history_variants if t == "blend" else ({},))
-            if (t != "lp" or m == "lp") and (t not in animated_only or sm == "animated")]
+            if (t != "lp" or m.partition("[")[0].strip() == "lp") and (t not in animated_only or sm == "animated")]
+
+
+def split_top_level(text: str, sep: str = ",") -> list:
+    """``text`` split at ``sep`` outside square brackets (``a,b[x=1,y=2]``
+    -> ``["a", "b[x=1,y=2]"]``); stripped, empty parts dropped."""
+    parts, depth, cur = [], 0, []
+    for ch in text:
+        if ch == "[":
+            depth += 1
+        elif ch == "]":
+            depth = max(0, depth - 1)
+        if ch == sep and depth == 0:
+            parts.append("".join(cur))
+            cur = []
+        else:
+            cur.append(ch)
+    parts.append("".join(cur))
+    return [p.strip() for p in parts if p.strip()]
+
+
+def _settings(text: str, what: str) -> dict:
+    """``key=value`` pairs separated by ``,`` (values as int, float or text)."""
+    d = {}
+    for item in filter(None, (x.strip() for x in text.split(","))):
+        key, sep, value = item.partition("=")
+        if not sep:
+            raise SequenceError(f"{what}: {item!r} is not key=value")
+        d[key.strip().replace("-", "_")] = _scalar(value.strip())
+    return d
+
+
+def _checked(params_type, d: dict, what: str) -> None:
+    """Refuse unknown keys and out-of-range values of ``params_type`` now,
+    before any render."""
+    from ..core.method import params_from_dict
+    known = {f.name for f in dataclasses.fields(params_type)}
+    unknown = sorted(set(d) - known)
+    if unknown:
+        raise SequenceError(f"{what}: unknown setting(s) {', '.join(unknown)} "
+                            f"(known: {', '.join(sorted(known))})")
+    try:
+        params_from_dict(params_type, d)
+    except (TypeError, ValueError, KeyError) as exc:
+        raise SequenceError(f"{what}: {exc}") from None
+
+
+def parse_method_spec(spec: str) -> tuple:
+    """``name`` or ``name[key=value,...]`` (the method's Params) -> (name,
+    params dict); unknown methods, keys and out-of-range values are refused."""
+    from ..core import methods as registry
+    spec = spec.strip()
+    name, bracket, rest = spec.partition("[")
+    name = name.strip()
+    if name not in registry.METHODS:
+        raise SequenceError(f"unknown method {name!r}; choose from {', '.join(registry.METHODS)}")
+    if not bracket:
+        return name, {}
+    if not rest.endswith("]"):
+        raise SequenceError(f"--methods {spec!r}: parameters go in [key=value,...]")
+    params = _settings(rest[:-1], f"--methods {spec!r}")
+    _checked(registry.get(name).Params, params, f"--methods {spec!r}")
+    return name, params
 
 
 def parse_history_variants(text: str | None) -> list:
@@ -356,31 +426,19 @@ def parse_history_variants(text: str | None) -> list:
     separated by ``,`` of core.history.Params (``""``: the defaults); checked
     against the Params now, so a typo fails before any render."""
     from ..core import history
-    from ..core.method import params_from_dict
     if not text:
         return [{}]
     out = []
     for part in text.split(";"):
-        d = {}
-        for item in filter(None, (x.strip() for x in part.split(","))):
-            key, sep, value = item.partition("=")
-            if not sep:
-                raise SequenceError(f"--history: {item!r} is not key=value")
-            d[key.strip().replace("-", "_")] = _scalar(value.strip())
-        known = {f.name for f in dataclasses.fields(history.Params)}
-        unknown = sorted(set(d) - known)
-        if unknown:
-            raise SequenceError(f"--history: unknown setting(s) {', '.join(unknown)} "
-                                f"(known: {', '.join(sorted(known))})")
-        try:
-            params_from_dict(history.Params, d)
-        except (TypeError, ValueError, KeyError) as exc:
-            raise SequenceError(f"--history {part!r}: {exc}") from None
+        d = _settings(part, "--history")
+        _checked(history.Params, d, f"--history {part!r}")
         out.append(d)
     return out
 
 
 def _scalar(text: str):
+    if text.lower() in ("true", "false"):
+        return text.lower() == "true"
     for kind in (int, float):
         try:
             return kind(text)
@@ -593,11 +651,9 @@ def add_arguments(p) -> None:
 
 def resolve_config(args) -> dict:
     """Validated settings of one sequence session."""
-    from ..core import methods as registry
-    methods = [m.strip() for m in args.methods.split(",") if m.strip()]
+    methods = split_top_level(args.methods)
     for m in methods:
-        if m not in registry.METHODS:
-            raise SequenceError(f"unknown method {m!r}; choose from {', '.join(registry.METHODS)}")
+        parse_method_spec(m)
     temporal = [t.strip() for t in args.temporal.split(",") if t.strip()]
     for t in temporal:
         if t not in TEMPORAL_MODES:
@@ -637,7 +693,7 @@ def resolve_config(args) -> dict:
 def command_of(cfg: dict) -> str:
     """The command line that reproduces ``cfg`` (for the report)."""
     parts = ["./cycles-adaptive bench-sequence", "--scenes", ",".join(cfg["scenes"]),
-             "--methods", ",".join(cfg["methods"]), "--temporal", ",".join(cfg["temporal"]),
+             "--methods", shlex.quote(",".join(cfg["methods"])), "--temporal", ",".join(cfg["temporal"]),
              "--budgets", ",".join(map(str, cfg["budgets"]))]
     if cfg["frames"]:
         parts += ["--frames", ",".join(map(str, cfg["frames"]))]

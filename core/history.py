@@ -90,7 +90,8 @@ class Params:
                             "1/max_frames of the weight; larger averages more frames on static parts, smaller "
                             "follows change sooner; 1 = no output blend; -1 = auto: 1 where the input "
                             "carries the history (Input History > 1: consecutive outputs share those "
-                            "samples, and blending them again was measured worse), else 8",
+                            "samples, and blending them again was measured worse; 2 for lp, which gained), "
+                            "else 8",
                             -1, 1024, label="Max History (frames)")
     pool_radius: int = param(-1, "radius of the window over which both error estimates are averaged before "
                              "the change test and the weights; 0 = per pixel; -1 = auto: 3 for methods whose "
@@ -123,8 +124,8 @@ class Params:
                               "samples of the previous frames, warped, are averaged into this frame's before "
                               "the method samples and reconstructs, holding at most this many frames' worth; "
                               "1 = off (then the outputs are blended instead); -1 = auto: 2 for denoisers "
-                              "(oidn, lp, awr, rhf; longer histories made OIDN worse), 4 for the sample mean "
-                              "(uniform, var)", -1, 64, label="Input History (frames)")
+                              "(oidn, awr, rhf; longer histories made OIDN worse), 8 for lp, 4 for the sample "
+                              "mean (uniform, var)", -1, 64, label="Input History (frames)")
     input_max_specular_share: float = param(1.0, "the input history is not carried where glossy + "
                                             "transmission light exceeds this share of the pixel's luminance "
                                             "(reflections move unlike their surface; Schalk's reprojection "
@@ -138,6 +139,11 @@ class Params:
 
 #: methods whose image is the sample mean: their errors are pooled before use (``resolve``)
 SAMPLE_MEAN_METHODS = ("uniform", "var")
+#: denoisers whose auto history is longer: method -> (input frames, output blend frames).
+#: LP's local regressions, which know the variance they are given, gained with 8 input
+#: frames and a 2-frame output blend on both animated scenes, where OIDN lost with more
+#: than 2 input frames (docs/notes/flicker.md)
+LONG_INPUT_METHODS = {"lp": (8, 2)}
 
 
 def resolve(params: Params, method: str | None) -> Params:
@@ -149,21 +155,23 @@ def resolve(params: Params, method: str | None) -> Params:
     (3, 1).  Catmull-Rom: uniform / var 0.8-0.9 % worse than bilinear (its
     negative lobes pass more of the noise), lp / oidn 0.2-0.3 % better.
     Input history (-1): 2 frames for denoisers and ``None``, 4 for the
-    sample mean; the output blend's ``max_frames`` (-1): 1 (off) with input
-    history, else 8 (``None``: a direct call of :func:`blend`).  Measured
+    sample mean, 8 for lp (``LONG_INPUT_METHODS``); the output blend's
+    ``max_frames`` (-1): 1 (off) with input history (2 for lp), else 8
+    (``None``: a direct call of :func:`blend`).  Measured
     (docs/notes/flicker.md): the input history beats the output blend for
     every method; OIDN lost with more than 2 frames, the sample mean gained
-    most with 4."""
+    most with 4, lp with 8 and a 2-frame output blend."""
     import dataclasses
     pooled = method in SAMPLE_MEAN_METHODS
     resample = params.resample if params.resample != "auto" else ("bilinear" if pooled else "catmull-rom")
-    input_frames = params.input_frames if params.input_frames >= 1 else (4 if pooled else 2)
+    auto_input, auto_output = LONG_INPUT_METHODS.get(method, (4 if pooled else 2, 1))
+    input_frames = params.input_frames if params.input_frames >= 1 else auto_input
     return dataclasses.replace(
         params, pool_radius=params.pool_radius if params.pool_radius >= 0 else (3 if pooled else 0),
         bias_radius=params.bias_radius if params.bias_radius >= 0 else (1 if pooled else 0), resample=resample,
         input_frames=input_frames,
-        max_frames=params.max_frames if params.max_frames >= 1 else (1 if method is not None and input_frames > 1
-                                                                     else 8))
+        max_frames=params.max_frames if params.max_frames >= 1 else (auto_output if method is not None
+                                                                     and input_frames > 1 else 8))
 
 
 @dataclass

@@ -847,8 +847,9 @@ UNIFORM = _Uniform()
 def method_for(params) -> object:
     """The Method to run for ``params`` (a Params or a dict): this module, or
     :data:`UNIFORM` when ``adaptive`` is off."""
-    adaptive = params.adaptive if isinstance(params, Params) else (params or {}).get("adaptive", True)
-    if adaptive is False:
+    from .method import params_from_dict
+    p = params if isinstance(params, Params) else params_from_dict(Params, params or {})
+    if not p.adaptive:   # through the Params: "false" from a job file or the command line is False
         return UNIFORM
     import sys
     return sys.modules[__name__]

@@ -169,6 +169,29 @@ def test_history_variants_apply_to_blend_only_and_typos_fail_early():
         seq.parse_history_variants("input_frames")
 
 
+def test_method_specs_carry_parameters_and_typos_fail_early():
+    """``--methods 'oidn,oidn[adaptive=False,error_estimate=False]'``: a
+    method with its Params, split outside the brackets; unknown methods,
+    keys and values out of range are refused before any render."""
+    specs = seq.split_top_level("oidn, oidn[adaptive=False,error_estimate=False],lp")
+    assert specs == ["oidn", "oidn[adaptive=False,error_estimate=False]", "lp"]
+    assert seq.parse_method_spec(specs[1]) == ("oidn", {"adaptive": False, "error_estimate": False})
+    from core import methods, oidn
+    assert methods.method_for("oidn", seq.parse_method_spec(specs[1])[1]) is oidn.UNIFORM
+    assert seq.parse_method_spec("lp") == ("lp", {})
+    assert seq.parse_method_spec("var[max_spp=16]") == ("var", {"max_spp": 16})
+    got = seq.configurations(["lp[rank_max=4]", "uniform"], ["none", "lp"])
+    assert [c[:2] for c in got] == [("lp[rank_max=4]", "none"), ("lp[rank_max=4]", "lp"), ("uniform", "none")]
+    with pytest.raises(seq.SequenceError, match="unknown method"):
+        seq.parse_method_spec("oidnn")
+    with pytest.raises(seq.SequenceError, match="unknown setting"):
+        seq.parse_method_spec("oidn[adaptiv=False]")
+    with pytest.raises(seq.SequenceError, match="min_spp"):
+        seq.parse_method_spec("var[min_spp=0]")
+    with pytest.raises(seq.SequenceError, match=r"\[key=value"):
+        seq.parse_method_spec("var[min_spp=2")
+
+
 def test_parse_frame_range():
     assert seq.parse_frame_range("1-3,5") == [1, 2, 3, 5]
     assert seq.parse_frame_range(None) is None

@@ -324,6 +324,11 @@ def test_auto_resampling_follows_the_method():
     assert hi.resolve(hi.Params(input_frames=1), "uniform").max_frames == 8
     assert hi.resolve(hi.Params(), None).max_frames == 8
     assert hi.resolve(hi.Params(max_frames=3), "lp").max_frames == 3
+    # lp: a longer input history and a 2-frame output blend on top (measured better for it alone)
+    lp = hi.resolve(hi.Params(), "lp")
+    assert (lp.input_frames, lp.max_frames) == (8, 2)
+    assert hi.resolve(hi.Params(input_frames=2), "lp").max_frames == 2
+    assert hi.resolve(hi.Params(input_frames=1), "lp").max_frames == 8
 
 
 # ------------------------------------------------------- input accumulation
