@@ -619,7 +619,8 @@ def add_arguments(p) -> None:
     p.add_argument("--scenes", default=",".join(DEFAULT_SCENES),
                    help=f"comma-separated animated scenes or .blend paths (default {','.join(DEFAULT_SCENES)})")
     p.add_argument("--methods", default=",".join(DEFAULT_METHODS),
-                   help=f"comma-separated methods (default {','.join(DEFAULT_METHODS)})")
+                   help=f"comma-separated methods (default {','.join(DEFAULT_METHODS)}), each optionally "
+                        "with its parameters: 'oidn,oidn[adaptive=false,error_estimate=false]'")
     p.add_argument("--temporal", default=",".join(TEMPORAL_MODES),
                    help="temporal modes to run (default none,reproject,lp,blend; lp only with method lp)")
     p.add_argument("--budgets", default="8", help="comma-separated spp budgets (default 8)")
