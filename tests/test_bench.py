@@ -660,7 +660,9 @@ def test_the_runs_safety_cap_stops_like_a_cancel_and_keeps_the_samples(monkeypat
             self.clock[0] += 1.0
             self.tasks.append(task)
             h, w = task.y1 - task.y0, task.x1 - task.x0
-            return np.full((h, w, 4), 0.5), {}
+            guides = {"albedo": np.full((h, w, 3), 0.5), "normal": np.full((h, w, 3), 0.5),
+                      "depth": np.ones((h, w, 1))}   # var's PASSES
+            return np.full((h, w, 4), 0.5), guides
 
     clock = [0.0]
     fake = types.SimpleNamespace(perf_counter=lambda: clock[0])

@@ -138,7 +138,7 @@ def test_the_users_last_render_keeps_its_slot():
 def _merged_uniform(scene, spp, hold):
     """``uniform`` through the loop at ``spp`` (4 subsets); the executor
     holds the count when ``hold``.  (mean colour, executor)."""
-    ex = CyclesExecutor(scene, bpy.context.view_layer, (), seed=0)
+    ex = CyclesExecutor(scene, bpy.context.view_layer, ("albedo", "normal", "depth"), seed=0)  # uniform's PASSES
     if hold:
         ex.hold_samples_at(spp)
     with ex:

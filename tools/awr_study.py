@@ -98,7 +98,12 @@ class ReplayExecutor:
         if task.offset + task.samples > len(self.g):
             raise RuntimeError(f"the replay needs {task.offset + task.samples} frames, has {len(self.g)}")
         c = self.g[task.offset:task.offset + task.samples, task.y0:task.y1, task.x0:task.x1].mean(0)
-        return np.concatenate([c, np.ones(c.shape[:2] + (1,))], axis=-1), {}
+        # the replay keeps colour only: flat guides (no information) for the methods that declare
+        # them (uniform's calibrated variance); the images compared here do not read them
+        h, w = c.shape[:2]
+        flat = {"albedo": np.full((h, w, 3), 0.5), "normal": np.dstack([np.zeros((h, w, 2)), np.ones((h, w))]),
+                "depth": np.ones((h, w, 1))}
+        return np.concatenate([c, np.ones(c.shape[:2] + (1,))], axis=-1), flat
 
 
 def replay(g, ref, method, spp, params=None):

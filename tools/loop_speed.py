@@ -90,7 +90,7 @@ def ours(scene, vl, spp, seed, subsets, clock) -> dict:
     t0 = time.perf_counter()
     opts = Options(method="uniform", spp=float(spp), seed=seed, frame=scene.frame_current,
                    **({"subsets": subsets} if subsets else {}))
-    exe = ex.CyclesExecutor(scene, vl, (), seed=seed)
+    exe = ex.CyclesExecutor(scene, vl, tuple(methods.get("uniform").PASSES), seed=seed)
     hold_samples(exe, opts, methods.method_for("uniform", opts.params))  # the scene's pattern, as a job does
     with exe:
         run = AdaptiveRun(exe, opts)
