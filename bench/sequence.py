@@ -356,7 +356,7 @@ def configurations(methods, temporals, seed_modes=("animated",), history_variant
     animated_only = FramesJob.NEEDS_ANIMATED_SEED
     return [(m, t, sm, hv) for sm in seed_modes for m in methods for t in temporals
             for hv in (history_variants if t == "blend" else ({},))
-            if (t != "lp" or m.partition("[")[0].strip() == "lp") and (t not in animated_only or sm == "animated")]
+            if (t != "lp" or method_name(m) == "lp") and (t not in animated_only or sm == "animated")]
 
 
 def split_top_level(text: str, sep: str = ",") -> list:
@@ -403,13 +403,17 @@ def _checked(params_type, d: dict, what: str) -> None:
         raise SequenceError(f"{what}: {exc}") from None
 
 
+def method_name(spec: str) -> str:
+    """The method name of a ``--methods`` spec (``oidn[adaptive=False]`` -> ``oidn``)."""
+    return spec.partition("[")[0].strip()
+
+
 def parse_method_spec(spec: str) -> tuple:
     """``name`` or ``name[key=value,...]`` (the method's Params) -> (name,
     params dict); unknown methods, keys and out-of-range values are refused."""
     from ..core import methods as registry
     spec = spec.strip()
-    name, bracket, rest = spec.partition("[")
-    name = name.strip()
+    name, (_, bracket, rest) = method_name(spec), spec.partition("[")
     if name not in registry.METHODS:
         raise SequenceError(f"unknown method {name!r}; choose from {', '.join(registry.METHODS)}")
     if not bracket:

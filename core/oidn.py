@@ -79,7 +79,7 @@ import numpy as np
 
 from .buffers import Buffers
 from .filters import box_mean
-from .method import MethodResult, allocate, exact_pixels, param
+from .method import MethodResult, allocate, exact_pixels, param, params_from_dict
 from .metrics import REL_EPS
 
 NAME = "oidn"
@@ -847,7 +847,6 @@ UNIFORM = _Uniform()
 def method_for(params) -> object:
     """The Method to run for ``params`` (a Params or a dict): this module, or
     :data:`UNIFORM` when ``adaptive`` is off."""
-    from .method import params_from_dict
     p = params if isinstance(params, Params) else params_from_dict(Params, params or {})
     if not p.adaptive:   # through the Params: "false" from a job file or the command line is False
         return UNIFORM

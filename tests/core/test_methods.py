@@ -47,10 +47,6 @@ def test_unknown_method_names_the_choices():
         methods.get("no-such-method")
 
 
-#: passes a frame job may render beside a method's own (denoise's guides, --temporal's surface)
-_EXTRA_PASSES = ("albedo", "normal", "depth", "position")
-
-
 @pytest.mark.parametrize("name", [m for m in methods.METHODS if m != "auto"])
 def test_results_do_not_depend_on_passes_the_method_does_not_declare(name):
     """The image, its error and the sample map are the same with passes the
