@@ -57,7 +57,7 @@ def read_layers(path: str, layer: str | None = None) -> tuple[dict, dict]:
     # Every part of a multi-part EXR: Blender 5.0 writes multilayer EXRs as one
     # part per pass unless ``use_exr_interleave`` is set (reading part 0 alone
     # gives only Combined).
-    columns, names, attrs, halves = [], [], {}, set()
+    planes, where, names, attrs, halves = [], [], [], {}, set()
     size = None
     try:
         sub = 0
@@ -73,9 +73,10 @@ def read_layers(path: str, layer: str | None = None) -> tuple[dict, dict]:
                 raise ImageFileError(f"{path}: unreadable pixel data, the file is truncated or "
                                      f"corrupt ({_oiio_error(inp)})")
             px = np.asarray(px, np.float32).reshape(spec.height, spec.width, spec.nchannels)
+            planes.append(px)
             formats = list(spec.channelformats) or [spec.format] * spec.nchannels
             for c, name in enumerate(spec.channelnames):
-                columns.append(px[:, :, c])
+                where.append((sub, c))
                 names.append(name)
                 if str(formats[c]) == "half":
                     halves.add(name)
@@ -87,7 +88,6 @@ def read_layers(path: str, layer: str | None = None) -> tuple[dict, dict]:
         inp.close()
     if not names:
         raise ImageFileError(f"{path}: no image data")
-    pixels = np.stack(columns, axis=-1)
     spec_w, spec_h = size[1], size[0]
     groups: dict = {}
     layers = list(dict.fromkeys(n.split(".")[0] for n in names if n.count(".") >= 2))
@@ -110,12 +110,21 @@ def read_layers(path: str, layer: str | None = None) -> tuple[dict, dict]:
         else:
             pname, ch = "", parts[0]
         groups.setdefault(pname, []).append((i, ch))
-    passes = {k: pixels[:, :, [i for i, _ in v]] for k, v in groups.items()}
+    passes = {k: _gather(planes, [where[i] for i, _ in v]) for k, v in groups.items()}
     half = sorted(k for k, v in groups.items() if any(names[i] in halves for i, _ in v))
     meta = {"width": spec_w, "height": spec_h, "layer": layer, "layers": layers,
             "channels": {k: [c for _, c in v] for k, v in groups.items()}, "attributes": attrs,
             "half": half}
     return passes, meta
+
+
+def _gather(parts, where) -> np.ndarray:
+    """(H, W, C) float32 copy of the channels ``where`` [(part, channel)]:
+    one fancy-index copy when they share a part (every pass in Blender's
+    files), else channel by channel."""
+    if len({p for p, _ in where}) == 1:
+        return parts[where[0][0]][:, :, [c for _, c in where]]
+    return np.stack([parts[p][:, :, c] for p, c in where], axis=-1)
 
 
 def read_rgb(path: str) -> np.ndarray:

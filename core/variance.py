@@ -347,36 +347,66 @@ def _pool_region(m2c, fac, inv_d, guides, r):
     / d_q``.  The weight is symmetric, so each pair's weight is computed
     once (half the offsets) and added to both pixels.  Without guides every
     weight is 1: clipped box sums (:func:`core.filters.box_sum`, which adds
-    the same elements in the same order in any row band)."""
+    the same elements in the same order in any row band).
+
+    With guides the block is laid out channel-first (every array operation
+    runs over whole planes) and the weights' exponent is computed in float32:
+    a weight is a factor in [0, 1] needing no more than ~1e-6 relative
+    precision, while the sums stay float64.  This cut the pooling of a
+    0.6-megapixel frame ~2x (docs/notes/loop-speed.md)."""
     h, w = m2c.shape[:2]
     if not guides:
         from .filters import box_sum
         den2 = None if inv_d is None else box_sum(fac * fac * inv_d, r)
         return box_sum(m2c, r), box_sum(fac, r), den2
-    num, den = m2c.copy(), fac.copy()
-    den2 = fac * fac * inv_d if inv_d is not None else None
-    for dy in range(0, r + 1):
-        for dx in range(-r, r + 1):
-            if dy == 0 and dx <= 0:
-                continue
-            if dy >= h or abs(dx) >= w:
-                continue
-            px0, px1 = max(0, -dx), min(w, w - dx)
-            P = (slice(0, h - dy), slice(px0, px1))
-            Q = (slice(dy, h), slice(px0 + dx, px1 + dx))
-            e = np.zeros((h - dy, px1 - px0))
-            for f, v, tol in guides:
-                e += feature_weights(f[P], v[P], f[Q], v[Q], tol)
-            wt = np.exp(-np.minimum(e, 700.0))[..., None]
-            wfq, wfp = wt * fac[Q], wt * fac[P]
-            num[P] += wt * m2c[Q]
-            num[Q] += wt * m2c[P]
-            den[P] += wfq
-            den[Q] += wfp
-            if den2 is not None:
-                den2[P] += wfq * wfq * inv_d[Q]
-                den2[Q] += wfp * wfp * inv_d[P]
-    return num, den, den2
+    cf = lambda a: np.ascontiguousarray(np.moveaxis(np.asarray(a, np.float64), -1, 0))
+    m2t, fct = cf(m2c), cf(fac)
+    idt = None if inv_d is None else cf(inv_d)
+    # where every channel has the same factor and dof (the usual case) the
+    # denominators are the same per channel: sum one plane (the same bits)
+    nc = fct.shape[0]
+    if nc > 1 and (fct == fct[:1]).all() and (idt is None or (idt == idt[:1]).all()):
+        fct = fct[:1]
+        idt = None if idt is None else idt[:1]
+    num, den = m2t.copy(), fct.copy()
+    den2 = fct * fct * idt if idt is not None else None
+    # every guide's channels as planes, each variance with half its tolerance^2
+    # added and doubled, so one pass per offset gives the exponent of
+    # :func:`feature_weights` summed over the guides: 2 (vp + vq + t^2)
+    g = np.concatenate([np.moveaxis(np.asarray(f, np.float32), -1, 0) for f, _, _ in guides])
+    u = np.concatenate([np.moveaxis(np.asarray(v, np.float64) + 0.5 * float(t) * float(t), -1, 0)
+                        for _, v, t in guides]).astype(np.float32)
+    np.maximum(u, 1e-30, out=u)  # a zero tolerance on a noiseless guide: no division by zero
+    u *= 2.0
+    with np.errstate(over="ignore", invalid="ignore"):
+        for dy in range(0, r + 1):
+            for dx in range(-r, r + 1):
+                if dy == 0 and dx <= 0:
+                    continue
+                if dy >= h or abs(dx) >= w:
+                    continue
+                px0, px1 = max(0, -dx), min(w, w - dx)
+                P = (slice(None), slice(0, h - dy), slice(px0, px1))
+                Q = (slice(None), slice(dy, h), slice(px0 + dx, px1 + dx))
+                d = np.subtract(g[P], g[Q])
+                np.square(d, out=d)
+                np.divide(d, np.add(u[P], u[Q]), out=d)
+                e = d.sum(axis=0)
+                np.fmin(e, 700.0, out=e)  # NaN (none expected: finite guides) -> weight ~0
+                np.negative(e, out=e)
+                wt = np.exp(e, out=e).astype(np.float64)
+                t = np.multiply(wt, fct[Q])
+                den[P] += t
+                if den2 is not None:
+                    den2[P] += t * t * idt[Q]
+                np.multiply(wt, fct[P], out=t)
+                den[Q] += t
+                if den2 is not None:
+                    den2[Q] += t * t * idt[P]
+                num[P] += wt * m2t[Q]
+                num[Q] += wt * m2t[P]
+    back = lambda a: np.moveaxis(np.broadcast_to(a, (nc,) + a.shape[1:]), 0, -1)
+    return back(num), back(den), None if den2 is None else back(den2)
 
 
 # ------------------------------------------------------------------- public

@@ -10,12 +10,14 @@ own time (``bpy.ops.render.render`` with the EXR write) and reading the EXR
 back, so the note can say where the loop's extra time goes:
 
     .venv/bin/python tools/loop_speed.py [--scenes cornell,...] [--percent 100,600] [--spp 16]
-        [--repeats 5] [--seed 0] [--subsets N] [--out F.json]
+        [--repeats 5] [--seed 0] [--subsets N] [--bare] [--out F.json]
 
 Prints, per scene and size, the medians over repeats, the speed ratio
 plain / ours (>= 1 would be as fast as plain Cycles) and how far our image is
 from plain Cycles' (largest absolute difference, relMSE taking plain's as the
-reference: 0 when the loop renders the same image).
+reference: 0 when the loop renders the same image).  ``--bare`` adds a third
+arm in the same alternation: ours rendering no feature passes (what the
+guides ``uniform`` reads cost the loop).
 """
 from __future__ import annotations
 
@@ -85,18 +87,26 @@ def plain(scene, vl, spp, seed, clock) -> dict:
     return {"wall": time.perf_counter() - t0, **clock.split(), "image": rgb}
 
 
-def ours(scene, vl, spp, seed, subsets, clock) -> dict:
+def ours(scene, vl, spp, seed, subsets, clock, passes=None) -> dict:
+    """``passes``: the feature passes rendered (None: what ``uniform`` declares)."""
     clock.reset()
     t0 = time.perf_counter()
     opts = Options(method="uniform", spp=float(spp), seed=seed, frame=scene.frame_current,
                    **({"subsets": subsets} if subsets else {}))
-    exe = ex.CyclesExecutor(scene, vl, tuple(methods.get("uniform").PASSES), seed=seed)
-    hold_samples(exe, opts, methods.method_for("uniform", opts.params))  # the scene's pattern, as a job does
-    with exe:
-        run = AdaptiveRun(exe, opts)
-        for _ in run.steps():
-            pass
-        image = run.reconstruct().image
+    mod = methods.get("uniform")
+    declared = mod.PASSES
+    if passes is not None:  # the run reads what the method declares: declare these for this arm
+        mod.PASSES = tuple(passes)
+    try:
+        exe = ex.CyclesExecutor(scene, vl, tuple(mod.PASSES), seed=seed)
+        hold_samples(exe, opts, methods.method_for("uniform", opts.params))  # the scene's pattern, as a job does
+        with exe:
+            run = AdaptiveRun(exe, opts)
+            for _ in run.steps():
+                pass
+            image = run.reconstruct().image
+    finally:
+        mod.PASSES = declared
     wall = time.perf_counter() - t0
     tm = run.timing
     return {"wall": wall, **clock.split(), "loop_render": tm.render, "reconstruct": tm.reconstruct,
@@ -121,6 +131,8 @@ def main(argv=None):
     ap.add_argument("--repeats", type=int, default=5)
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--subsets", type=int, default=0, help="the loop's subsets (0: its default)")
+    ap.add_argument("--bare", action="store_true",
+                    help="also time ours without feature passes (the guides' cost)")
     ap.add_argument("--out")
     args = ap.parse_args(argv)
     clock = Clock()
@@ -133,20 +145,26 @@ def main(argv=None):
             scene.render.resolution_percentage = pct
             vl = scene.view_layers[0]
             plain(scene, vl, 1, args.seed, clock)  # warm-up: kernels, BVH, caches
-            p, o = [], []
+            p, o, b = [], [], []
             gaps = []
             for _ in range(args.repeats):
                 p.append(plain(scene, vl, args.spp, args.seed, clock))
                 o.append(ours(scene, vl, args.spp, args.seed, args.subsets, clock))
                 gaps.append(image_gap(o[-1].pop("image"), p[-1].pop("image")))
-            med = {side: {k: statistics.median(r[k] for r in runs) for k in runs[0]}
-                   for side, runs in (("plain", p), ("ours", o))}
+                if args.bare:
+                    b.append(ours(scene, vl, args.spp, args.seed, args.subsets, clock, passes=()))
+                    b[-1].pop("image")
+            arms = (("plain", p), ("ours", o)) + ((("bare", b),) if b else ())
+            med = {side: {k: statistics.median(r[k] for r in runs) for k in runs[0]} for side, runs in arms}
             w, h = ex.full_size(scene)
             row = {"scene": name, "width": w, "height": h, "spp": args.spp, "repeats": args.repeats,
                    "ratio": med["plain"]["wall"] / med["ours"]["wall"],
                    "ratios": [a["wall"] / b["wall"] for a, b in zip(p, o)], "seed": args.seed,
                    "max_abs_diff": max(g["max_abs_diff"] for g in gaps),
                    "relmse_to_plain": max(g["relmse_to_plain"] for g in gaps), **med}
+            if b:
+                row["bare_ratio"] = med["plain"]["wall"] / med["bare"]["wall"]
+                row["bare_ratios"] = [a["wall"] / c["wall"] for a, c in zip(p, b)]
             rows.append(row)
             print(f"{name:>12} {w}x{h} {args.spp} spp: plain {med['plain']['wall']:.3f} s "
                   f"(cycles {med['plain']['cycles']:.3f}, read {med['plain']['read']:.3f}) | ours "
@@ -156,6 +174,11 @@ def main(argv=None):
                   f"speed {row['ratio']:.3f}x (median of pairs {statistics.median(row['ratios']):.3f}x, "
                   f"Cycles' share {med['plain']['cycles'] / med['ours']['cycles']:.3f}x); image: max |ours - plain| "
                   f"{row['max_abs_diff']:.2e}, relMSE to plain {row['relmse_to_plain']:.2e}", flush=True)
+            if b:
+                print(f"{'':>12} ours without feature passes {med['bare']['wall']:.3f} s (cycles "
+                      f"{med['bare']['cycles']:.3f}, read {med['bare']['read']:.3f}; reconstruct "
+                      f"{med['bare']['reconstruct']:.3f}) | speed {row['bare_ratio']:.3f}x (median of pairs "
+                      f"{statistics.median(row['bare_ratios']):.3f}x)", flush=True)
     if args.out:
         with open(args.out, "w") as f:
             json.dump(rows, f, indent=1)

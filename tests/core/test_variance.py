@@ -280,7 +280,8 @@ def test_row_chunks_do_not_change_the_result(monkeypatch):
 
 
 def test_pooling_matches_a_direct_weighted_sum():
-    """pool_m2 at one pixel equals the bilateral ratio of sums written out."""
+    """pool_m2 at one pixel equals the bilateral ratio of sums written out
+    (to the float32 precision of the weights' exponent, sums in float64)."""
     rng = np.random.default_rng(11)
     h, w, r = 9, 8, 2
     m2 = rng.uniform(0, 1, (h, w, 3))
@@ -296,7 +297,44 @@ def test_pooling_matches_a_direct_weighted_sum():
                 e = ((f[py, px] - f[qy, qx]) ** 2 / (2 * (fv[py, px] + fv[qy, qx] + 0.01))).sum()
                 num += np.exp(-e) * m2[qy, qx]
                 den += np.exp(-e) * fac[qy, qx]
-        assert np.allclose(got[py, px], num / den, rtol=1e-12)
+        assert np.allclose(got[py, px], num / den, rtol=2e-6, atol=0)
+
+
+def test_guided_pooling_per_channel_equals_all_channels_at_once():
+    """Channels pool independently: pooling each colour channel alone gives
+    the same bits as pooling all three, also where one channel's M2 is
+    invalid at some pixels (its own denominators) and where every channel
+    is valid (one shared denominator plane), with the dof."""
+    rng = np.random.default_rng(13)
+    h, w, r = 10, 12, 2
+    guides = [(rng.uniform(0, 1, (h, w, 3)), rng.uniform(0, 0.01, (h, w, 3)), 0.1),
+              (rng.uniform(0, 3, (h, w, 1)), rng.uniform(0, 0.02, (h, w, 1)), 0.05)]
+    fac = rng.uniform(0.5, 2, (h, w))
+    d = rng.uniform(1, 5, (h, w))
+    for broken in (False, True):
+        m2 = rng.uniform(0, 1, (h, w, 3))
+        if broken:
+            m2[rng.uniform(size=(h, w)) < 0.3, 1] = np.nan
+        got, dof = V.pool_m2(m2, fac, guides, r, dof=d)
+        for c in range(3):
+            one, one_dof = V.pool_m2(m2[..., c:c + 1], fac, guides, r, dof=d)
+            np.testing.assert_array_equal(got[..., c:c + 1], one)
+            np.testing.assert_array_equal(dof[..., c:c + 1], one_dof)
+
+
+def test_guided_pooling_is_finite_for_extreme_guides():
+    """Guides at the clamps (+-1e30, their squares overflow float32), a zero
+    tolerance on a noiseless guide: finite pooled values, none NaN."""
+    h, w = 6, 7
+    m2 = np.ones((h, w, 3))
+    fac = np.ones((h, w))
+    f = np.zeros((h, w, 1))
+    f[::2] = 1e30
+    f[1::3] = -1e30
+    zero = np.zeros((h, w, 1))
+    got = V.pool_m2(m2, fac, [(f, zero, 0.0), (zero, zero, 0.1)], 2)
+    assert np.isfinite(got).all()
+    np.testing.assert_allclose(got, 1.0, rtol=1e-12)
 
 
 def test_unguided_pooling_is_the_box_ratio_and_bands_agree(monkeypatch):
