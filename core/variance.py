@@ -61,7 +61,6 @@ __all__ = [
     "calibration_ratio",
     "ExponentMeter",
     "expected_m2_factor",
-    "feature_weights",
     "group_spread",
     "pool_m2",
     "spread_ratio",
@@ -258,19 +257,12 @@ def _guides(buf, names, color=True, rows=None):
     return out
 
 
-def feature_weights(fp, vp, fq, vq, tol) -> np.ndarray:
-    """Joint-bilateral weight term of one feature: ``exp(-|f_p - f_q|^2 /
-    (2 (var_p + var_q + tol^2)))`` summed over channels in the exponent; the
-    features' own noise widens the tolerance, so noisy features (DoF, motion
-    blur) do not split a flat region."""
-    d2 = (fp - fq) ** 2 / (2.0 * (vp + vq + tol * tol))
-    return d2.sum(axis=-1)
-
-
 def pool_m2(m2, factor, guides=(), radius: int = 2, dof=None):
     """Edge-aware estimate of ``C`` per pixel: ``sum_q w_pq M2_q / sum_q w_pq
-    factor_q`` over the (2r+1)^2 window clipped to the image, ``w_pq`` the
-    product of :func:`feature_weights` terms (1 at q = p).
+    factor_q`` over the (2r+1)^2 window clipped to the image, ``w_pq =
+    exp(-sum_g sum_c |f_p - f_q|^2 / (2 (var_p + var_q + tol_g^2)))`` over
+    the guides (1 at q = p); a guide's own noise widens its tolerance, so
+    noisy features (DoF, motion blur) do not split a flat region.
 
     m2 : (H, W, C) between-group sums of squares (non-finite: pixel skipped)
     factor : (H, W) ``expected_m2_factor`` (0: pixel skipped)
@@ -371,8 +363,8 @@ def _pool_region(m2c, fac, inv_d, guides, r):
     num, den = m2t.copy(), fct.copy()
     den2 = fct * fct * idt if idt is not None else None
     # every guide's channels as planes, each variance with half its tolerance^2
-    # added and doubled, so one pass per offset gives the exponent of
-    # :func:`feature_weights` summed over the guides: 2 (vp + vq + t^2)
+    # added and doubled, so one pass per offset gives the weight exponent of
+    # :func:`pool_m2` summed over the guides: 2 (vp + vq + t^2)
     g = np.concatenate([np.moveaxis(np.asarray(f, np.float32), -1, 0) for f, _, _ in guides])
     u = np.concatenate([np.moveaxis(np.asarray(v, np.float64) + 0.5 * float(t) * float(t), -1, 0)
                         for _, v, t in guides]).astype(np.float32)

@@ -145,16 +145,16 @@ def main(argv=None):
             scene.render.resolution_percentage = pct
             vl = scene.view_layers[0]
             plain(scene, vl, 1, args.seed, clock)  # warm-up: kernels, BVH, caches
-            p, o, b = [], [], []
+            p, o, bare = [], [], []
             gaps = []
             for _ in range(args.repeats):
                 p.append(plain(scene, vl, args.spp, args.seed, clock))
                 o.append(ours(scene, vl, args.spp, args.seed, args.subsets, clock))
                 gaps.append(image_gap(o[-1].pop("image"), p[-1].pop("image")))
                 if args.bare:
-                    b.append(ours(scene, vl, args.spp, args.seed, args.subsets, clock, passes=()))
-                    b[-1].pop("image")
-            arms = (("plain", p), ("ours", o)) + ((("bare", b),) if b else ())
+                    bare.append(ours(scene, vl, args.spp, args.seed, args.subsets, clock, passes=()))
+                    bare[-1].pop("image")
+            arms = (("plain", p), ("ours", o)) + ((("bare", bare),) if bare else ())
             med = {side: {k: statistics.median(r[k] for r in runs) for k in runs[0]} for side, runs in arms}
             w, h = ex.full_size(scene)
             row = {"scene": name, "width": w, "height": h, "spp": args.spp, "repeats": args.repeats,
@@ -162,9 +162,9 @@ def main(argv=None):
                    "ratios": [a["wall"] / b["wall"] for a, b in zip(p, o)], "seed": args.seed,
                    "max_abs_diff": max(g["max_abs_diff"] for g in gaps),
                    "relmse_to_plain": max(g["relmse_to_plain"] for g in gaps), **med}
-            if b:
+            if bare:
                 row["bare_ratio"] = med["plain"]["wall"] / med["bare"]["wall"]
-                row["bare_ratios"] = [a["wall"] / c["wall"] for a, c in zip(p, b)]
+                row["bare_ratios"] = [a["wall"] / c["wall"] for a, c in zip(p, bare)]
             rows.append(row)
             print(f"{name:>12} {w}x{h} {args.spp} spp: plain {med['plain']['wall']:.3f} s "
                   f"(cycles {med['plain']['cycles']:.3f}, read {med['plain']['read']:.3f}) | ours "
@@ -174,7 +174,7 @@ def main(argv=None):
                   f"speed {row['ratio']:.3f}x (median of pairs {statistics.median(row['ratios']):.3f}x, "
                   f"Cycles' share {med['plain']['cycles'] / med['ours']['cycles']:.3f}x); image: max |ours - plain| "
                   f"{row['max_abs_diff']:.2e}, relMSE to plain {row['relmse_to_plain']:.2e}", flush=True)
-            if b:
+            if bare:
                 print(f"{'':>12} ours without feature passes {med['bare']['wall']:.3f} s (cycles "
                       f"{med['bare']['cycles']:.3f}, read {med['bare']['read']:.3f}; reconstruct "
                       f"{med['bare']['reconstruct']:.3f}) | speed {row['bare_ratio']:.3f}x (median of pairs "
