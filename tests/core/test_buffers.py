@@ -134,3 +134,45 @@ def test_luminance_is_the_rec709_sum_in_float64():
     assert np.allclose(lum, rgb.astype(np.float64) @ LUMA, rtol=4e-16, atol=0)
     with pytest.raises(ValueError, match="RGB"):
         luminance(np.ones((4, 4)))
+
+
+def _constant_features_by_copy(buf, rtol=1e-6):
+    """The definition, written out on a copy of the pixels with samples."""
+    has = buf.n > 0
+    out = []
+    for name, st in buf.features.items():
+        v = st.mean[has]
+        v = np.where(np.isfinite(v), v, np.nan)
+        if v.size == 0 or np.all(np.isnan(v)):
+            out.append(name)
+            continue
+        with np.errstate(invalid="ignore"), __import__("warnings").catch_warnings():
+            __import__("warnings").simplefilter("ignore", RuntimeWarning)
+            lo, hi = np.nanmin(v, axis=0), np.nanmax(v, axis=0)
+        if np.all(hi - lo <= rtol * (1.0 + np.nanmax(np.abs(v)))):
+            out.append(name)
+    return tuple(out)
+
+
+def test_constant_features_match_the_definition_on_hostile_passes():
+    """The in-place reductions give the definition's answer: NaN and +-inf
+    pixels ignored, pixels without samples ignored, a channel with no finite
+    value (never constant unless the whole pass has none), a frame without
+    samples (every pass constant), spreads just below and above the tolerance."""
+    rng = np.random.default_rng(7)
+    h, w = 9, 11
+    for trial in range(40):
+        feats = {}
+        for name, c in (("albedo", 3), ("normal", 3), ("depth", 1), ("alpha", 1)):
+            base = rng.choice([0.0, 0.5, 1e3, -2.0])
+            spread = rng.choice([0.0, 0.4e-6, 3e-6, 1.0]) * (1 + abs(base))
+            x = base + spread * rng.random((h, w, c))
+            bad = rng.random((h, w, c)) < rng.choice([0.0, 0.1, 1.0])
+            x[bad] = rng.choice([np.nan, np.inf, -np.inf], size=int(bad.sum()))
+            if c == 3 and trial % 7 == 0:
+                x[..., 1] = np.nan  # one channel without any finite value
+            feats[name] = x
+        buf = Buffers.from_subsets([np.ones((h, w, 3))] * 2, [1, 1], [feats] * 2)
+        if trial % 5 == 0:
+            buf.n[rng.random((h, w)) < (1.0 if trial % 10 == 0 else 0.5)] = 0
+        assert buf.constant_features() == _constant_features_by_copy(buf), trial
