@@ -20,6 +20,7 @@ import os
 import shutil
 import sys
 import tempfile
+import threading
 
 import bpy
 import numpy as np
@@ -215,21 +216,61 @@ def render_still(scene, view_layer, path: str, what: str = "", attributes: dict 
     delete it: the passes dict of :func:`core.io.read_layers`.  SceneError
     (naming ``what``) when Cycles wrote no file.  ``attributes``: a dict
     that receives the file's string header attributes (Cryptomatte's)."""
+    render_file(scene, view_layer, path, what)
+    return read_still(path, view_layer.name, what, attributes)
+
+
+def render_file(scene, view_layer, path: str, what: str = "") -> None:
+    """The render half of :func:`render_still` (Blender's main thread):
+    ``path`` holds the multilayer EXR afterwards, else SceneError."""
     scene.render.filepath = path
     with quiet_stdout():
         bpy.ops.render.render(write_still=True, scene=scene.name, layer=view_layer.name)
     if not os.path.isfile(path):
         raise SceneError("Cycles wrote no image" + (f" {what}" if what else ""))
+
+
+def read_still(path: str, layer: str, what: str = "", attributes: dict | None = None) -> dict:
+    """The reading half of :func:`render_still`: the passes of view layer
+    ``layer`` in the EXR at ``path``, which is then deleted.  No Blender
+    data is touched, so any thread may call it."""
     # a multilayer file of a scene with several view layers holds each (the others empty): read ours
     try:
-        passes, meta = imageio.read_layers(path, view_layer.name)
+        passes, meta = imageio.read_layers(path, layer)
     except imageio.ImageFileError as exc:
-        raise SceneError(f"Cycles wrote no layer {view_layer.name!r}" + (f" {what}" if what else "")
+        raise SceneError(f"Cycles wrote no layer {layer!r}" + (f" {what}" if what else "")
                          + f" ({exc})") from None
     if attributes is not None:
         attributes.update(meta["attributes"])
     os.unlink(path)
     return passes
+
+
+class PendingRead:
+    """A rendered task's passes, read back from its file on the first call
+    (from any thread, once; later calls return the same arrays or raise the
+    same error).  ``done(self)`` is called once the read has ended."""
+
+    def __init__(self, read, done=None):
+        self._read, self._done = read, done
+        self._lock = threading.Lock()
+        self._value = None
+        self._error: BaseException | None = None
+
+    def __call__(self):
+        with self._lock:
+            if self._read is not None:
+                try:
+                    self._value = self._read()
+                except BaseException as exc:  # raised to every caller
+                    self._error = exc
+                finally:
+                    self._read = None
+                    if self._done is not None:
+                        self._done(self)
+        if self._error is not None:
+            raise self._error
+        return self._value
 
 
 #: view-layer switch -> Cryptomatte pass base name (layers <base>00, 01, ...:
@@ -297,6 +338,8 @@ class CyclesExecutor:
         self.tmpdir = tmpdir or tempfile.mkdtemp(prefix="cycles-adaptive-")
         self.guard = SettingsGuard()
         self.renders = 0
+        self._unread: set = set()        # render_deferred's reads not yet done
+        self._unread_lock = threading.Lock()
         self.hold = None             # hold_samples_at: the run's one final count
         self.pattern = None          # the sampling pattern the renders use (after entering)
         self.initial_pattern = None  # the pattern before release_hold, if it was called
@@ -351,6 +394,15 @@ class CyclesExecutor:
         return False
 
     def close(self):
+        # a deferred read not yet done (a merge still to come): read now,
+        # before the files go; its consumer gets the arrays (or the error)
+        with self._unread_lock:
+            unread = list(self._unread)
+        for pending in unread:
+            try:
+                pending()
+            except Exception:  # noqa: BLE001 - kept by the PendingRead for its consumer
+                pass
         self.guard.restore()
         frame = getattr(self, "_frame", None)
         if frame is not None and alive(self.scene) and self.scene.frame_current != frame:
@@ -445,6 +497,15 @@ class CyclesExecutor:
     # ----------------------------------------------------------------- render
     def render(self, task):
         """Render one task; returns (rgba (h, w, 4) float64, features dict)."""
+        return self.render_deferred(task)()
+
+    def render_deferred(self, task) -> PendingRead:
+        """Render one task (main thread) and leave its file to be read back
+        later: a :class:`PendingRead` whose call returns what :meth:`render`
+        does.  The loop calls it on the merge's thread, so reading and
+        converting the passes (~0.07 s per 0.6-megapixel render with the
+        guides) hides behind the next render; :meth:`close` reads what is
+        still unread before deleting the files."""
         s, r, c = self.scene, self.scene.render, self.scene.cycles
         if s.frame_current != task.frame:
             s.frame_set(task.frame)
@@ -461,26 +522,18 @@ class CyclesExecutor:
             c.sample_offset = int(task.offset)
         path = os.path.join(self.tmpdir, f"task{self.renders:06d}.exr")
         self.renders += 1
-        attributes = {}
-        passes = render_still(s, self.view_layer, path, f"for {task}", attributes)
-        h, w = y1 - y0, x1 - x0
-        color = passes.get("Combined")
-        if color is None or color.shape[:2] != (h, w):
-            got = None if color is None else color.shape[:2]
-            raise SceneError(f"border render gave {got}, expected {(h, w)} for {task}")
-        feats = {}
-        for f in self.features:
-            if f in SAMPLE_ZERO_PASSES and task.offset > 0:
-                continue  # not written by this render: the merge keeps the value of sample 0's
-            names = [n if n in passes else PASS_NAMES_5.get(n, n) for n in PASS_SOURCES[f][0]]
-            missing = [n for n in names if n not in passes]
-            if missing:
-                raise SceneError(f"pass {missing[0]!r} missing from the render (have {sorted(passes)})")
-            feats[f] = sum(passes[n].astype(np.float64) for n in names)
-        bases = cryptomatte_bases(self.view_layer)
-        if bases:  # ranked ids, not a mean: merged apart (core.pipeline.merge_cryptomatte)
-            feats["cryptomatte"] = cryptomatte_ranks(passes, bases, attributes)
-        return color.astype(np.float64), feats
+        render_file(s, self.view_layer, path, f"for {task}")
+        # what the read needs from Blender's data, taken now (the read may run on another thread)
+        layer, features, bases = self.view_layer.name, self.features, cryptomatte_bases(self.view_layer)
+        pending = PendingRead(lambda: _read_task(path, layer, task, (y1 - y0, x1 - x0), features, bases),
+                              self._read_done)
+        with self._unread_lock:
+            self._unread.add(pending)
+        return pending
+
+    def _read_done(self, pending) -> None:
+        with self._unread_lock:
+            self._unread.discard(pending)
 
     def camera_info(self, frame: int) -> dict:
         """Camera of ``frame`` as numpy arrays (for reprojection):
@@ -508,6 +561,30 @@ class CyclesExecutor:
     def write_preview(self, rgba: np.ndarray, path: str) -> None:
         """PNG in the scene's view transform (Blender applies it on save)."""
         write_preview(self.scene, rgba, path)
+
+
+def _read_task(path: str, layer: str, task, size: tuple, features: tuple, bases: tuple):
+    """(rgba (h, w, 4) float64, features dict) of one task's render at
+    ``path`` (deleted after): :meth:`CyclesExecutor.render`'s result.  No
+    Blender data is touched."""
+    attributes = {}
+    passes = read_still(path, layer, f"for {task}", attributes)
+    color = passes.get("Combined")
+    if color is None or color.shape[:2] != tuple(size):
+        got = None if color is None else color.shape[:2]
+        raise SceneError(f"border render gave {got}, expected {tuple(size)} for {task}")
+    feats = {}
+    for f in features:
+        if f in SAMPLE_ZERO_PASSES and task.offset > 0:
+            continue  # not written by this render: the merge keeps the value of sample 0's
+        names = [n if n in passes else PASS_NAMES_5.get(n, n) for n in PASS_SOURCES[f][0]]
+        missing = [n for n in names if n not in passes]
+        if missing:
+            raise SceneError(f"pass {missing[0]!r} missing from the render (have {sorted(passes)})")
+        feats[f] = sum(passes[n].astype(np.float64) for n in names)
+    if bases:  # ranked ids, not a mean: merged apart (core.pipeline.merge_cryptomatte)
+        feats["cryptomatte"] = cryptomatte_ranks(passes, bases, attributes)
+    return color.astype(np.float64), feats
 
 
 def _pass_switch(view_layer, attr: str) -> tuple:

@@ -19,6 +19,9 @@ may render an iteration's tasks in parallel (e.g. on farm workers) but yields
 the results in task order: the loop merges them in that order, so the image
 does not depend on which executor rendered it; ``drop_passes(names)``, which
 stops rendering feature passes that carry no information;
+``render_deferred(task) -> take``, which renders now and returns a call that
+gives ``render``'s result (the loop calls it on the merge's thread: reading
+the passes back hides behind the next render; it must touch no Blender data);
 ``run_jobs(module, name, jobs, local_fallback=False) -> list`` with
 ``map_parts`` (int), which computes ``module.name(job)`` for each job (pure
 functions of their arguments, e.g. LP's bands of rows of a sample map or of
@@ -913,26 +916,36 @@ class AdaptiveRun:
                 else:
                     rows = min(rows, -(-task.height // FIRST_BANDS))
             band = replace(task, y0=y, y1=y + rows)
-            color, feats = self._render(band)
+            take = self._render(band)
             seconds += self._last_render_seconds
-            pieces.append((color, feats))
+            pieces.append(take)
             y = band.y1
             done = y >= task.y1
-            yield from self._merge_steps(band, color, feats, (lambda: measure(pieces)) if done else None)
+            yield from self._merge_steps(band, take, (lambda: measure([t() for t in pieces])) if done else None)
             if not done:
                 yield Progress("render", 0, self._fraction(),
                                f"{label}: rows {task.y0}-{y} of {task.y1}", y - task.y0, task.height)
         self._initial_seconds.append(seconds)
 
     def _render(self, task):
-        """Render one task (the executor: Blender's main thread); (color, features)."""
+        """Render one task (the executor: Blender's main thread); returns
+        ``take() -> (color, features)``.  A task that merges in the background
+        (``MERGE_WORK_PIXELS``) is rendered through the executor's
+        ``render_deferred`` where it has one, so reading its passes back
+        happens in the merge, behind the next render."""
         t0 = time.perf_counter()
-        color, feats = self.executor.render(task)
+        defer = getattr(self.executor, "render_deferred", None)  # optional member, see module notes
+        if defer is not None and task.pixels >= MERGE_WORK_PIXELS:
+            take = defer(task)
+        else:
+            rendered = self.executor.render(task)
+            take = lambda: rendered  # noqa: E731
         self._count_render(time.perf_counter() - t0, task)
-        return color, feats
+        return take
 
-    def _merge_steps(self, task, color, feats, also=None):
-        """Merge one rendered task (then ``also()``), after the merge before
+    def _merge_steps(self, task, take, also=None):
+        """Merge one rendered task (``take() -> (color, features)``, then
+        ``also()``), after the merge before
         it has landed, so merges keep their order and the buffers their bits.
         A task of at least ``MERGE_WORK_PIXELS`` merges on a background thread
         (:attr:`pending_merge`, a :class:`Work` marked ``mutates``) while the
@@ -941,7 +954,7 @@ class AdaptiveRun:
         the render instead of adding to it.  The loop waits for it
         (:meth:`_settle_steps`) before anything of its own reads the buffers."""
         def merge():
-            self._merge(task, color, feats)
+            self._merge(task, *take())
             if also is not None:
                 also()
         label = f"merging {task.x1 - task.x0}x{task.y1 - task.y0} px, {task.samples} spp"
@@ -1012,8 +1025,7 @@ class AdaptiveRun:
             for task in tasks:
                 if self._time_up():
                     return
-                color, feats = self._render(task)
-                yield from self._merge_steps(task, color, feats)
+                yield from self._merge_steps(task, self._render(task))
                 yield task
             return
         results = iter(many(tasks))
@@ -1024,9 +1036,9 @@ class AdaptiveRun:
                     close()
                 return
             t0 = time.perf_counter()
-            color, feats = next(results)
+            rendered = next(results)
             self._count_render(time.perf_counter() - t0, task)
-            yield from self._merge_steps(task, color, feats)
+            yield from self._merge_steps(task, lambda r=rendered: r)
             yield task
 
     def _adapt(self, budget: int):

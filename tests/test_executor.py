@@ -246,3 +246,44 @@ def test_a_held_count_renders_the_scenes_own_pattern_and_merges_into_its_render(
     else:
         assert ex.pattern == "TABULATED_SOBOL" and ex.hold is None
         np.testing.assert_allclose(held, sobol, rtol=1e-5, atol=1e-6)
+
+
+def test_a_deferred_read_gives_the_render_and_close_reads_what_is_left(monkeypatch):
+    """``render_deferred`` renders now and reads the file on its call, from
+    any thread, once: the arrays of ``render`` for the same samples, bit for
+    bit.  A read never called before the executor closes is done by
+    ``close`` before the files go, so the merge that comes later still gets
+    its render; a read's error reaches every caller."""
+    import os
+    import threading
+    from cycles_adaptive.addon import executor as exmod
+    scene = build_scene(24, 20)
+    task = regions.RegionTask(0, 0, 24, 20, 2, offset=0)
+    with CyclesExecutor(scene, bpy.context.view_layer, ("albedo", "normal", "depth"), seed=5) as ex:
+        color, feats = ex.render(task)
+        pending = ex.render_deferred(task)
+        files = os.listdir(ex.tmpdir)
+        assert len(files) == 1  # rendered, not read yet
+        got = {}
+        worker = threading.Thread(target=lambda: got.setdefault("r", pending()))
+        worker.start()
+        worker.join()
+        assert os.listdir(ex.tmpdir) == [] and pending() is got["r"]
+        np.testing.assert_array_equal(got["r"][0], color)
+        assert set(got["r"][1]) == set(feats)
+        for k in feats:
+            np.testing.assert_array_equal(got["r"][1][k], feats[k])
+        unread = ex.render_deferred(regions.RegionTask(0, 0, 24, 20, 2, offset=2))
+        tmp = ex.tmpdir
+        calls = []
+        monkeypatch.setattr(exmod, "read_still", lambda *a, **k: calls.append(1) or (_ for _ in ()).throw(
+            SceneError("the file is unreadable")))
+        failing = ex.render_deferred(regions.RegionTask(0, 0, 24, 20, 2, offset=4))
+        for _ in range(2):
+            with pytest.raises(SceneError, match="unreadable"):
+                failing()
+        assert calls == [1]  # read once, its error kept
+        monkeypatch.undo()
+    assert not os.path.exists(tmp)
+    c2, f2 = unread()  # read by close, before the files went
+    assert c2.shape == color.shape and not np.array_equal(c2, color) and set(f2) == set(feats)

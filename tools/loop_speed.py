@@ -46,7 +46,8 @@ SCENES = "cornell,dof,soft_shadows,glossy,motion_blur,animated"
 
 class Clock:
     """Seconds spent in Cycles' render call (with its EXR write) and in reading
-    the EXR back, and the number of renders, since the last :meth:`reset`."""
+    the EXR back (ours: on the merge's thread, behind the next render, except
+    the last), and the number of renders, since the last :meth:`reset`."""
 
     def __init__(self):
         self.reset()
@@ -60,23 +61,23 @@ class Clock:
             finally:
                 clock.read += time.perf_counter() - t0
 
-        def render_still(scene, view_layer, path, what="", attributes=None):
+        def render_file(scene, view_layer, path, what=""):
             t0 = time.perf_counter()
             try:
-                return original(scene, view_layer, path, what, attributes)
+                return original(scene, view_layer, path, what)
             finally:
-                clock.still += time.perf_counter() - t0
+                clock.cycles += time.perf_counter() - t0
                 clock.renders += 1
 
-        original = ex.render_still
+        original = ex.render_file
         imageio.read_layers = read_layers
-        ex.render_still = render_still
+        ex.render_file = render_file
 
     def reset(self):
-        self.still, self.read, self.renders = 0.0, 0.0, 0
+        self.cycles, self.read, self.renders = 0.0, 0.0, 0
 
     def split(self) -> dict:
-        return {"renders": self.renders, "cycles": self.still - self.read, "read": self.read}
+        return {"renders": self.renders, "cycles": self.cycles, "read": self.read}
 
 
 def plain(scene, vl, spp, seed, clock) -> dict:

@@ -160,3 +160,53 @@ def test_the_kept_sample_count_is_the_buffers_count_at_every_step(monkeypatch, t
     run.settle()
     assert checked > 10 and run.samples_rendered == int(run.buffers.n.sum() - run.reused.sum())
     assert run.reused.sum() == (6 * h * w if with_prior else 0)
+
+
+class Deferring(FakeExecutor):
+    """An executor that reads its renders back later (``render_deferred``):
+    each result is computed on its first call, and the thread of that call
+    recorded."""
+
+    def __init__(self, *a, **k):
+        super().__init__(*a, **k)
+        self.reads = []  # (task offset, on the main thread)
+
+    def render_deferred(self, task):
+        rendered, lock = [], threading.Lock()
+        result = super().render(task)
+
+        def take():
+            with lock:
+                if not rendered:
+                    self.reads.append((task.offset, threading.current_thread() is threading.main_thread()))
+                    rendered.append(result)
+            return rendered[0]
+        return take
+
+
+@pytest.mark.parametrize("method,kw", [
+    ("uniform", dict(spp=8, subsets=4)),
+    ("lp", dict(spp=8, initial_spp=4, subsets=4, task_cost=16, min_task_size=2, iterations=2)),
+])
+def test_deferred_reads_happen_in_the_merges_and_give_the_same_bits(monkeypatch, method, kw):
+    """A task large enough to merge in the background is rendered through
+    ``render_deferred``, and its result taken on the merge's thread, once;
+    the buffers and the image are those of plain ``render`` calls.  Smaller
+    tasks (inline merges) keep ``render``."""
+    h, w = 20, 28
+    plain, _, r_plain = _run(monkeypatch, 1, method, **kw)
+    monkeypatch.setattr(pipeline, "MERGE_WORK_PIXELS", 1)
+    ex = Deferring(_truth(h, w), _features(h, w))
+    run = AdaptiveRun(ex, Options(method=method, **kw))
+    for _ in run.steps():
+        pass
+    r = run.reconstruct()
+    assert len(ex.reads) == len(ex.tasks) and not any(main for _, main in ex.reads)
+    for x, y in [(plain.buffers.n, run.buffers.n), (plain.buffers.color.mean, run.buffers.color.mean),
+                 (plain.buffers.color.m2, run.buffers.color.m2), (r_plain.image, r.image), (r_plain.error, r.error)]:
+        np.testing.assert_array_equal(x, y)
+    monkeypatch.setattr(pipeline, "MERGE_WORK_PIXELS", INLINE)
+    ex = Deferring(_truth(h, w), _features(h, w))
+    for _ in AdaptiveRun(ex, Options(method=method, **kw)).steps():
+        pass
+    assert ex.reads == [] and ex.tasks
