@@ -725,7 +725,12 @@ def _give_back(image, out, lo, hi, weight, mean):
         room = np.where(d > 0, out < hi, out > lo)
         wr = np.where(room, weight, 0.0)
         tot = wr.reshape(-1, c).sum(axis=0)
-        out = np.clip(out + wr * np.divide(d, tot, out=np.zeros_like(tot), where=tot > 0), lo, hi)
+        q = np.divide(d, tot, out=np.zeros_like(tot), where=tot > 0)
+        with np.errstate(over="ignore", invalid="ignore"):
+            # where a pixel has no room its share is 0 even when d / tot
+            # overflowed (a 1e30 total over weights of 1e-300): never 0 * inf
+            add = np.where(wr > 0, wr * q, 0.0)
+            out = np.clip(out + np.where(np.isnan(add), 0.0, add), lo, hi)
     return out
 
 
