@@ -118,6 +118,11 @@ class Buffers:
     exponent : float
         Convergence exponent of the sequence's error (``core/variance.py``),
         measured by the loop on its initial pass; 1.0 (i.i.d.) when unknown.
+    gsum : (H, W) float64 or None
+        ``sum_i n_i^(1 - exponent)`` over each pixel's groups (sizes ``n_i``),
+        kept from :meth:`set_exponent` on, so the calibrated variance knows
+        groups of unequal size (region renders after the initial pass);
+        None: the groups are taken as equal (``n / k`` each).
     """
 
     n: np.ndarray
@@ -126,6 +131,7 @@ class Buffers:
     features: dict = field(default_factory=dict)
     half: Half | None = None
     exponent: float = 1.0
+    gsum: np.ndarray | None = None
 
     # ------------------------------------------------------------------ shape
     @property
@@ -177,7 +183,31 @@ class Buffers:
     def copy(self) -> "Buffers":
         return Buffers(self.n.copy(), self.k.copy(), self.color.copy(),
                        {k: v.copy() for k, v in self.features.items()},
-                       None if self.half is None else self.half.copy(), self.exponent)
+                       None if self.half is None else self.half.copy(), self.exponent,
+                       None if self.gsum is None else self.gsum.copy())
+
+    def set_exponent(self, exponent: float, sizes=None) -> None:
+        """Set :attr:`exponent` and start keeping :attr:`gsum` for it.
+        ``sizes``: the samples of the groups every pixel holds so far (the
+        initial pass's full-frame subsets), used where a pixel has exactly
+        that many groups; elsewhere the groups so far are taken as equal,
+        ``k (n / k)^(1 - exponent)``."""
+        self.exponent = float(exponent)
+        g = self._equal_gsum(self.exponent)
+        if sizes is not None and len(sizes) and all(float(m) > 0 for m in sizes):
+            exact = float(sum(float(m) ** (1.0 - self.exponent) for m in sizes))
+            same = (self.k == len(sizes)) & (self.n == float(sum(float(m) for m in sizes)))
+            g = np.where(same, exact, g)
+        self.gsum = g
+
+    def _equal_gsum(self, exponent: float) -> np.ndarray:
+        """:attr:`gsum` of these buffers with their groups taken as equal."""
+        q = 1.0 - float(exponent)
+        ok = (self.k > 0) & (self.n > 0)
+        k = np.where(ok, self.k, 1.0)
+        with np.errstate(invalid="ignore", divide="ignore", over="ignore"):
+            g = np.where(ok, k * np.power(np.where(ok, self.n, 1.0) / k, q), 0.0)
+        return np.where(np.isfinite(g), g, 0.0)
 
     # ----------------------------------------------------------------- merging
     def merge_group(self, color, count, features=None, region=None) -> None:
@@ -236,6 +266,9 @@ class Buffers:
                 self.n[bs] = n
                 k = self.k[bs]
                 np.add(k, has, out=k)
+                if self.gsum is not None:  # this group's n_i^(1 - exponent)
+                    g = self.gsum[bs]
+                    np.add(g, np.where(has, np.power(np.where(has, c, 1.0), 1.0 - self.exponent), 0.0), out=g)
 
         _run_rows(band, self.n[sl].shape)
 
@@ -250,6 +283,9 @@ class Buffers:
         sl = _region_slice(region, self.shape)
         for name in self.features:
             other.features[name]  # noqa: B018  (KeyError before any change)
+        if self.gsum is not None:  # other's groups: its own record, else taken as equal
+            same = other.gsum is not None and float(other.exponent) == self.exponent
+            self.gsum[sl] += other.gsum if same else other._equal_gsum(self.exponent)
         # the halves of ``other`` exist for the whole region or not at all
         split = self.half is not None and other._halves_valid()
         y0 = sl[0].start
@@ -463,7 +499,7 @@ class Buffers:
         half = self.half
         if half is not None:
             half = Half(half.n, half.color, {k: v for k, v in half.features.items() if k not in names})
-        return Buffers(self.n, self.k, self.color, keep, half, self.exponent)
+        return Buffers(self.n, self.k, self.color, keep, half, self.exponent, self.gsum)
 
     def crop(self, x0: int, y0: int, x1: int, y1: int) -> "Buffers":
         """A copy of the rectangle [y0, y1) x [x0, x1) (clipped to the frame)
@@ -479,7 +515,8 @@ class Buffers:
         half = None if self.half is None else Half(self.half.n[sl].copy(), self.half.color[sl].copy(),
                                                    {k: v[sl].copy() for k, v in self.half.features.items()})
         return Buffers(self.n[sl].copy(), self.k[sl].copy(), stat(self.color),
-                       {k: stat(v) for k, v in self.features.items()}, half, self.exponent)
+                       {k: stat(v) for k, v in self.features.items()}, half, self.exponent,
+                       None if self.gsum is None else self.gsum[sl].copy())
 
     def feature(self, name: str) -> np.ndarray:
         return self.features[name].mean

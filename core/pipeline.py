@@ -718,7 +718,7 @@ class AdaptiveRun:
         # a selecting method scores candidates on crops of the separate subsets
         crops = self.method.cv_regions(self.height, self.width, self.params) if selects(self.method) else []
         self._cv = [[] for _ in crops]
-        last = tasks[0]
+        last, sizes = tasks[0], []
         for s, task in enumerate(tasks):
             if s and (self._time_up() or self._would_overrun(task)):  # one subset at least: an image
                 self.time_limited = True
@@ -734,6 +734,7 @@ class AdaptiveRun:
                                  task.samples))
             yield from self._render_subset(task, measure, f"initial pass: subset {s + 1}/{len(tasks)}")
             last = task
+            sizes.append(task.samples)
             yield Progress("initial", 0, self._fraction(),
                            f"initial pass: subset {s + 1}/{len(tasks)} ({task.samples} spp)",
                            s + 1, len(tasks))
@@ -744,7 +745,8 @@ class AdaptiveRun:
         # the sequence's stratification, measured once on the equal subsets (core/variance.py)
         work = Work(lambda: meter.exponent(self.buffers), "initial pass: measuring the noise's convergence")
         yield Progress("initial", 0, self._fraction(), work.label, work=work)
-        self.buffers.exponent = work.result()
+        # from here on the buffers keep their groups' sizes (the calibrated variance's Eq. 1)
+        self.buffers.set_exponent(work.result(), sizes)
 
     def _drop_uninformative(self):
         """Feature passes the method reads that carry no information in this
@@ -1192,6 +1194,8 @@ class AdaptiveRun:
                 "exponent": self.buffers.exponent, "selection": self.selection,
                 "dropped": list(self.dropped), "cryptomatte_header": self.cryptomatte_header}
         arrays = {"next_index": self.next_index, "reused": self.reused}
+        if self.buffers.gsum is not None:
+            arrays["gsum"] = self.buffers.gsum
         for base, acc in self.cryptomatte.items():
             arrays.update({f"crypto__{base}__{k}": v for k, v in acc.state().items()})
         storage.save_checkpoint(self.checkpoint_path, self.buffers, arrays, meta, self.method_state)
@@ -1213,6 +1217,8 @@ class AdaptiveRun:
             raise ValueError(f"{path}: checkpoint is {b.n.shape}, the render is "
                              f"{(self.height, self.width)}")
         b.exponent = float(meta.get("exponent", 1.0))
+        gsum = arrays.get("gsum")
+        b.gsum = None if gsum is None or np.shape(gsum) != b.n.shape else np.asarray(gsum, np.float64)
         self.buffers = b
         self._count = None
         self.dropped = tuple(p for p in meta.get("dropped", []) if p in b.features)

@@ -215,17 +215,23 @@ class ExponentMeter:
         return _invert_ratio(s_k / s_pairs, k)
 
 
-def expected_m2_factor(n, k, exponent: float = 1.0) -> np.ndarray:
-    """``E[M2] / C = n^(1-beta) (k^beta - 1)`` (Eq. 2 of the module notes) for
-    k equal groups; 0 where k < 2 or n <= 0 (no estimate).  Groups of unequal
-    size (region renders merged later) are treated as equal, ``m = n / k``."""
+def expected_m2_factor(n, k, exponent: float = 1.0, gsum=None) -> np.ndarray:
+    """``E[M2] / C`` for a pixel's groups under ``v(x) = C x^-beta``: with
+    the groups' sizes ``n_i``, identity (1) of the module notes gives
+    ``E[M2] = sum_i n_i v(n_i) - n v(n) = C (sum_i n_i^(1-beta) - n^(1-beta))``
+    (``gsum`` = that sum, :attr:`core.buffers.Buffers.gsum`); without it the
+    groups are taken as equal, ``m = n / k``, which is Eq. 2,
+    ``n^(1-beta) (k^beta - 1)``.  0 where k < 2 or n <= 0 (no estimate)."""
     n = np.asarray(n, np.float64)
     k = np.asarray(k, np.float64)
     ok = (k >= 2) & (n > 0) & np.isfinite(n) & np.isfinite(k)
     b = np.asarray(exponent, np.float64)
     with np.errstate(invalid="ignore", over="ignore", divide="ignore"):
-        f = np.power(np.where(ok, n, 1.0), 1.0 - b) * (np.power(np.where(ok, k, 2.0), b) - 1.0)
-    return np.where(ok & np.isfinite(f), f, 0.0)
+        if gsum is None:
+            f = np.power(np.where(ok, n, 1.0), 1.0 - b) * (np.power(np.where(ok, k, 2.0), b) - 1.0)
+        else:
+            f = np.asarray(gsum, np.float64) - np.power(np.where(ok, n, 1.0), 1.0 - b)
+    return np.where(ok & np.isfinite(f) & (f > 0), f, 0.0)
 
 
 # ------------------------------------------------------------------ pooling
@@ -431,9 +437,14 @@ def calibrated_variance_and_dof(buf, exponent: float = 1.0, radius: int = 2,
     names = features if radius > 0 else ()
     colour = color_guide if radius > 0 else False
 
+    # the buffers' record of their group sizes holds for their own exponent only
+    gsum = getattr(buf, "gsum", None)
+    if gsum is not None and not (b.ndim == 0 and float(b) == float(buf.exponent)):
+        gsum = None
+
     def region(a0, a1):
         L = slice(a0, a1)
-        factor = expected_m2_factor(n_all[L], k_all[L], b_rows(L))
+        factor = expected_m2_factor(n_all[L], k_all[L], b_rows(L), None if gsum is None else gsum[L])
         return m2[L], factor, k_all[L] - 1.0, _guides(buf, names, colour, rows=(a0, a1))
 
     v = np.empty(m2.shape)

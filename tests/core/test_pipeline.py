@@ -83,6 +83,27 @@ def test_checkpoint_resume_gives_identical_result(tmp_path):
     np.testing.assert_array_equal(resumed.buffers.n, full.buffers.n)
     np.testing.assert_array_equal(resumed.buffers.color.mean, full.buffers.color.mean)
     np.testing.assert_array_equal(resumed.buffers.color.m2, full.buffers.color.m2)
+    assert full.buffers.gsum is not None  # the groups' sizes, kept through the checkpoint
+    np.testing.assert_array_equal(resumed.buffers.gsum, full.buffers.gsum)
+
+
+def test_the_loop_keeps_each_pixels_group_sizes_for_the_calibrated_variance():
+    """From the exponent's measurement on, the buffers hold ``sum_i
+    n_i^(1 - beta)`` over each pixel's groups: the initial subsets and every
+    region task that covered it (``Buffers.gsum``)."""
+    ex = FakeExecutor(_truth(24, 32))
+    run = AdaptiveRun(ex, Options(method="var", spp=12, initial_spp=4, subsets=4, task_cost=16,
+                                  min_task_size=4, iterations=3))
+    for _ in run.steps():
+        pass
+    b = run.buffers
+    q = 1.0 - b.exponent
+    want = np.zeros(b.shape)
+    for t in ex.tasks:
+        want[t.y0:t.y1, t.x0:t.x1] += float(t.samples) ** q
+    assert len({(t.x0, t.y0, t.x1, t.y1) for t in ex.tasks}) > 1  # region tasks, not only whole frames
+    np.testing.assert_allclose(b.gsum, want, rtol=1e-12)
+    assert b.exponent != 1.0
 
 
 def test_resume_refuses_other_settings(tmp_path):

@@ -444,3 +444,70 @@ def test_the_loop_measures_the_exponent_and_checkpoints_it(tmp_path):
     again = AdaptiveRun(FakeExecutor(truth), Options(method="var", spp=8, initial_spp=4, subsets=4))
     again.load_checkpoint(str(tmp_path / "c.npz"))
     assert again.buffers.exponent == beta
+
+
+def _power_law_groups(sizes, beta, shape, rng, C=1.0):
+    """Group means whose errors follow ``v(x) = C x^-beta`` for every group
+    and for the whole: equicorrelated Gaussian errors, the correlation chosen
+    so that the samples-weighted mean has variance ``C n^-beta`` (a
+    stratified sequence's negative correlation between groups)."""
+    sizes = np.asarray(sizes, np.float64)
+    n = sizes.sum()
+    sd = np.sqrt(C * sizes ** -beta)
+    wgt = sizes / n
+    indep, joint = np.sum(wgt ** 2 * sd ** 2), np.sum(wgt * sd) ** 2
+    rho = (C * n ** -beta - indep) / (joint - indep)
+    assert -1.0 / (len(sizes) - 1) < rho < 1.0
+    cov = rho * np.outer(sd, sd) + np.diag((1 - rho) * sd ** 2)
+    e = rng.multivariate_normal(np.zeros(len(sizes)), cov, size=shape)  # (*shape, K)
+    return [0.5 + e[..., i] for i in range(len(sizes))]
+
+
+@pytest.mark.parametrize("beta", [1.0, 1.3, 1.7])
+def test_unequal_groups_calibrate_by_their_sizes(beta):
+    """Four equal initial subsets, then one larger group (a region render):
+    with the sizes kept (``Buffers.set_exponent`` / ``gsum``) the calibrated
+    variance of the mean is unbiased, ``E[M2] = C (sum n_i^(1-beta) -
+    n^(1-beta))``; taking the five groups as equal over-states it at beta > 1
+    (by ~8 % here at 1.3, ~20 % at 1.7), and is exact at beta = 1."""
+    rng = np.random.default_rng(41)
+    sizes = [1, 1, 1, 1, 4]
+    h, w = 300, 400
+    groups = _power_law_groups(sizes, beta, (h, w, 3), rng)
+    buf = Buffers.empty(h, w)
+    for g, m in zip(groups[:4], sizes[:4]):
+        buf.merge_group(g, m)
+    buf.set_exponent(beta, sizes[:4])
+    buf.merge_group(groups[4], sizes[4])
+    true_v = 8.0 ** -beta
+    kept = V.calibrated_variance_of_mean(buf, beta, radius=0)
+    assert abs(kept.mean() / true_v - 1) < 0.01
+    eq = buf.copy()
+    eq.gsum = None
+    taken_equal = V.calibrated_variance_of_mean(eq, beta, radius=0)
+    q = 1 - beta
+    bias = (4 + 4.0 ** q - 8.0 ** q) / (8.0 ** q * (5.0 ** beta - 1))
+    assert abs(taken_equal.mean() / true_v / bias - 1) < 0.01
+    if beta > 1:
+        assert bias > 1.05
+    else:
+        np.testing.assert_allclose(kept, taken_equal, rtol=1e-12)
+
+
+def test_kept_sizes_of_equal_groups_give_eq_2_and_other_exponents_ignore_them():
+    rng = np.random.default_rng(5)
+    subs = [rng.random((6, 7, 3)) for _ in range(4)]
+    buf = Buffers.from_subsets(subs, [3] * 4)
+    plain = V.calibrated_variance_of_mean(buf, 1.4)
+    buf.set_exponent(1.4, [3] * 4)
+    np.testing.assert_allclose(buf.gsum, 4 * 3.0 ** -0.4, rtol=1e-14)
+    np.testing.assert_allclose(V.calibrated_variance_of_mean(buf, 1.4), plain, rtol=1e-12)
+    # an exponent other than the one the sizes were kept for: Eq. 2 as before
+    np.testing.assert_array_equal(V.calibrated_variance_of_mean(buf, 1.2),
+                                  V.calibrated_variance_of_mean(Buffers.from_subsets(subs, [3] * 4), 1.2))
+    # merged buffers without a record count as equal groups; crops and views keep the record
+    other = Buffers.from_subsets(subs[:2], [2, 2])
+    buf.merge(other)
+    np.testing.assert_allclose(buf.gsum, 4 * 3.0 ** -0.4 + 2 * 2.0 ** -0.4, rtol=1e-14)
+    np.testing.assert_array_equal(buf.crop(1, 2, 4, 5).gsum, buf.gsum[2:5, 1:4])
+    assert buf.without(()).gsum is buf.gsum and buf.copy().gsum is not buf.gsum
