@@ -5,7 +5,8 @@ Two serialisations of the same per-pixel statistics (``core/buffers.py``):
 * **passes** (:func:`buffers_to_passes`, :func:`buffers_from_passes`): the
   passes of our multilayer output EXR, ``Combined`` (result RGB + mean alpha),
   ``Noisy`` (sample mean), ``Variance`` (of the mean, 0 where unknown), ``M2``,
-  ``Samples``, ``Groups``, ``Error`` and ``Feat_<name>`` / ``Feat_<name>_M2``:
+  ``Samples``, ``Groups``, ``Error``, ``GroupPower`` (``Buffers.gsum``, where
+  kept; its exponent is the header's) and ``Feat_<name>`` / ``Feat_<name>_M2``:
   everything ``denoise`` needs to re-run any method.  A plain Blender
   multilayer render (Combined + Denoising passes) reads too, with one sample
   group (no variance known).
@@ -65,6 +66,8 @@ def buffers_to_passes(buf: Buffers, image: np.ndarray, error: np.ndarray) -> dic
         "Groups": buf.k,
         "Error": error,
     }
+    if buf.gsum is not None:  # the groups' sizes for the exponent (denoise calibrates alike)
+        passes["GroupPower"] = buf.gsum
     for name, st in buf.features.items():
         passes[f"Feat_{name}"] = (st.mean, _letters(st.mean.shape[2]))
         passes[f"Feat_{name}_M2"] = (st.m2, _letters(st.m2.shape[2]))
@@ -122,6 +125,8 @@ def _from_output(passes: dict, path: str) -> Buffers:
                 passes["Groups"][:, :, 0].astype(np.float64),
                 Stat(passes["Noisy"][:, :, :3].astype(np.float64),
                      passes["M2"][:, :, :3].astype(np.float64)))
+    if "GroupPower" in passes:  # valid with the exponent it was kept for (the caller sets both)
+        b.gsum = passes["GroupPower"][:, :, 0].astype(np.float64)
     for name in passes:
         if name.startswith("Feat_") and not name.endswith("_M2"):
             m2 = passes.get(name + "_M2", np.zeros_like(passes[name]))

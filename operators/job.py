@@ -12,7 +12,9 @@ Outputs (written atomically; an existing file is never replaced unless
 - ``OUT.exr``: multilayer EXR, layer = the view layer's name, passes
   ``Combined`` (result RGB + mean alpha), ``Noisy``, ``Variance`` (of the mean,
   0 where unknown), ``M2``, ``Samples``, ``Groups``, ``Error`` (estimated
-  squared error), ``NextIndex`` and ``Feat_<name>`` / ``Feat_<name>_M2`` for every
+  squared error), ``NextIndex``, ``GroupPower`` (the groups' sizes for the
+  header's ``cycles_adaptive/exponent/<layer>``) and ``Feat_<name>`` /
+  ``Feat_<name>_M2`` for every
   feature pass: all that ``denoise`` needs to re-run any method later (every
   render keeps :func:`denoise_passes`, whatever its own method reads).
   When the scene composites its renders (``addon/compositor.py``), the
@@ -658,7 +660,10 @@ class RenderJob:
                  "cycles_adaptive/options": json.dumps(_jsonable(vars(self.options))),
                  "cycles_adaptive/blender": bpy.app.version_string,
                  "cycles_adaptive/partial": str(bool(partial)).lower(),
-                 "cycles_adaptive/reconstructed": str(bool(reconstructed)).lower()}
+                 "cycles_adaptive/reconstructed": str(bool(reconstructed)).lower(),
+                 # the sequence's stratification exponent of this layer's buffers (with its
+                 # GroupPower pass): what `denoise` calibrates the variance with
+                 f"{EXPONENT_ATTRIBUTE}/{self.layer_name}": repr(float(run.buffers.exponent))}
         attrs.update(crypto_attrs)
         h, w = run.height, run.width
         summary = {
@@ -1027,6 +1032,8 @@ class LayersJob:
         merged = Output(first.passes, first.layer, dict(first.attributes), self._summary(done, outs, note, partial),
                         [(o.layer, o.passes) for o in outs[1:]] + extra, comp, first.exr)
         merged.attributes["cycles_adaptive/view_layers"] = json.dumps([j.layer_name for j in done])
+        for o in outs[1:]:  # each layer's exponent
+            merged.attributes.update({k: v for k, v in o.attributes.items() if k.startswith(EXPONENT_ATTRIBUTE)})
         self.composite = comp
         t = time.perf_counter()
 
@@ -1072,6 +1079,27 @@ class LayersJob:
         return s
 
 
+#: header attribute (``<this>/<view layer>``) with the exponent of a layer's buffers
+EXPONENT_ATTRIBUTE = "cycles_adaptive/exponent"
+
+
+def stored_exponent(buf, meta: dict) -> None:
+    """Set ``buf.exponent`` from the file's attribute for its layer (the
+    render's measured stratification, core/variance.py), so a re-run
+    calibrates the variance of the mean as the render did; 1.0 (i.i.d.)
+    and no group record where the file has none (older outputs, plain
+    Blender renders) or the value is unreadable."""
+    raw = (meta.get("attributes") or {}).get(f"{EXPONENT_ATTRIBUTE}/{meta.get('layer') or ''}")
+    try:
+        value = float(raw) if raw is not None else None
+    except (TypeError, ValueError):
+        value = None
+    if value is None or not np.isfinite(value) or value <= 0:
+        buf.exponent, buf.gsum = 1.0, None
+        return
+    buf.exponent = value
+
+
 def denoise_output(path: str, method: str, params: dict | None = None, guard_z: float | None = None,
                    reference: str | None = None, exr_depth: str = "half", exr_contents: str = "full") -> Output:
     """Re-run ``method`` on the passes stored in ``path`` (an output EXR of a
@@ -1082,6 +1110,7 @@ def denoise_output(path: str, method: str, params: dict | None = None, guard_z: 
     t0 = time.perf_counter()
     passes, meta = imageio.read_layers(path)
     buf = buffers_from_passes(passes, path)
+    stored_exponent(buf, meta)
     mod = methods.get(method)
     missing = [f for f in mod.PASSES if f not in buf.features]
     if missing:

@@ -94,7 +94,8 @@ def test_api_arrays_and_file_equal_the_cli_for_the_same_arguments(tmp_path, meth
     assert all(np.array_equal(passes[k], cli_passes[k]) for k in cli_passes)
     ours = {k: v for k, v in meta["attributes"].items() if k.startswith("cycles_adaptive/")}
     theirs = {k: v for k, v in cli_meta["attributes"].items() if k.startswith("cycles_adaptive/")}
-    assert ours == theirs and len(ours) == 7  # version, method, options, blender, partial, reconstructed, layers
+    # version, method, options, blender, partial, reconstructed, layers, the layer's exponent
+    assert ours == theirs and len(ours) == 8
 
 
 def test_denoise_equals_the_cli_denoise(tmp_path):

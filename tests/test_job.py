@@ -460,3 +460,44 @@ def test_renders_cut_into_bands_for_the_ui_give_the_same_file(tmp_path, method):
     assert set(a) == set(b)
     for p in a:
         assert np.array_equal(a[p], b[p]), p
+
+
+def test_denoise_calibrates_the_variance_as_the_render_did(tmp_path):
+    """The output keeps the layer's stratification exponent (header) and its
+    groups' sizes (GroupPower), so ``denoise`` re-runs a method on the
+    variance the render's reconstruction read (to the float32 rounding of
+    the stored statistics), not the i.i.d. variance the file gave before
+    (> 1.1x larger here).  LP's own image is not compared: its window and
+    rank choices flip on that rounding (relMSE ~3e-2 between the two on this
+    32x24 frame, from normals rounded by <= 3e-8)."""
+    from cycles_adaptive.core.storage import buffers_from_passes
+    from cycles_adaptive.core import variance
+    scene = build_scene(32, 24)
+    scene.cycles.seed = 3
+    out = str(tmp_path / "lp.exr")
+    job = RenderJob(scene, bpy.context.view_layer, Options(method="lp", spp=12, initial_spp=4, subsets=4,
+                                                           frame=scene.frame_current, task_cost=16,
+                                                           min_task_size=4), out)
+    for _ in job.steps():
+        pass
+    job.finish()
+    buf = job.run.buffers
+    assert buf.exponent != 1.0 and buf.gsum is not None
+    assert (buf.k > 4).any()  # the rounds' region groups: unequal sizes
+    again = job_mod.denoise_output(out, "lp")
+    passes, meta = imageio.read_layers(out)
+    stored = buffers_from_passes(passes, out)
+    job_mod.stored_exponent(stored, meta)
+    assert stored.exponent == buf.exponent
+    np.testing.assert_allclose(stored.gsum, buf.gsum, rtol=1e-6)
+    v_render = buf.calibrated_variance()
+    np.testing.assert_allclose(stored.calibrated_variance(), v_render, rtol=1e-4)
+    stored.exponent, stored.gsum = 1.0, None  # what the file gave before
+    noisy = v_render > 0
+    assert np.median(stored.calibrated_variance()[noisy] / v_render[noisy]) > 1.1
+    assert np.isfinite(again.passes["Combined"]).all()
+    # uniform's error image is the calibrated variance itself: the re-run's equals the render's
+    from cycles_adaptive.core import uniform
+    want = uniform.reconstruct(job.run.view).error
+    got = np.asarray(job_mod.denoise_output(out, "uniform").passes["Error"], np.float64).reshape(want.shape)
+    np.testing.assert_allclose(got, want, rtol=1e-4, atol=1e-12)
