@@ -9,7 +9,7 @@ Cycles' count held at the budget, ``core.pipeline.hold_samples``).  Every render
 own time (``bpy.ops.render.render`` with the EXR write) and reading the EXR
 back, so the note can say where the loop's extra time goes:
 
-    .venv/bin/python tools/loop_speed.py [--scenes cornell,...] [--percent 100,600] [--spp 16]
+    .venv/bin/python tools/loop_speed.py [--scenes cornell,...] [--percent 100,600] [--spp 16] [--method auto]
         [--repeats 5] [--seed 0] [--subsets N] [--bare] [--out F.json]
 
 Prints, per scene and size, the medians over repeats, the speed ratio
@@ -17,7 +17,9 @@ plain / ours (>= 1 would be as fast as plain Cycles) and how far our image is
 from plain Cycles' (largest absolute difference, relMSE taking plain's as the
 reference: 0 when the loop renders the same image).  ``--bare`` adds a third
 arm in the same alternation: ours rendering no feature passes (what the
-guides ``uniform`` reads cost the loop).
+guides ``uniform`` reads cost the loop).  ``--method auto`` or
+``oidn-uniform`` times that method instead, against plain Cycles with its
+own OIDN (the peer an artist compares it with).
 """
 from __future__ import annotations
 
@@ -80,29 +82,38 @@ class Clock:
         return {"renders": self.renders, "cycles": self.cycles, "read": self.read}
 
 
-def plain(scene, vl, spp, seed, clock) -> dict:
+def plain(scene, vl, spp, seed, clock, denoise=False) -> dict:
+    """One plain Cycles render (``denoise``: with Cycles' own OIDN, the peer
+    of a method that denoises with OIDN)."""
     clock.reset()
     t0 = time.perf_counter()
     with PlainCycles(scene, vl, seed, scene.cycles.sampling_pattern) as pc:
-        rgb = pc.render(spp)["rgb"]
+        rgb = pc.render(spp, denoise=denoise)["rgb"]
     return {"wall": time.perf_counter() - t0, **clock.split(), "image": rgb}
 
 
-def ours(scene, vl, spp, seed, subsets, clock, passes=None) -> dict:
-    """``passes``: the feature passes rendered (None: what ``uniform`` declares)."""
+#: --method: (registered method, its params, whether plain Cycles' peer denoises)
+METHODS = {"uniform": ("uniform", {}, False), "auto": ("auto", {}, True),
+           "oidn-uniform": ("oidn", {"adaptive": False, "error_estimate": False}, True)}
+
+
+def ours(scene, vl, spp, seed, subsets, clock, passes=None, method="uniform") -> dict:
+    """``passes``: the feature passes rendered (None: what the method declares)."""
     clock.reset()
     t0 = time.perf_counter()
-    opts = Options(method="uniform", spp=float(spp), seed=seed, frame=scene.frame_current,
+    name, params, _ = METHODS[method]
+    opts = Options(method=name, spp=float(spp), seed=seed, frame=scene.frame_current, params=dict(params),
                    **({"subsets": subsets} if subsets else {}))
-    mod = methods.get("uniform")
+    run_method = methods.method_for(name, opts.params)
+    mod = methods.get(name)
     declared = mod.PASSES
     if passes is not None:  # the run reads what the method declares: declare these for this arm
         mod.PASSES = tuple(passes)
     try:
-        exe = ex.CyclesExecutor(scene, vl, tuple(mod.PASSES), seed=seed)
-        hold_samples(exe, opts, methods.method_for("uniform", opts.params))  # the scene's pattern, as a job does
+        exe = ex.CyclesExecutor(scene, vl, tuple(run_method.PASSES if passes is None else passes), seed=seed)
+        hold_samples(exe, opts, run_method)  # the scene's pattern, as a job does
         with exe:
-            run = AdaptiveRun(exe, opts)
+            run = AdaptiveRun(exe, opts, method=run_method)
             for _ in run.steps():
                 pass
             image = run.reconstruct().image
@@ -134,8 +145,11 @@ def main(argv=None):
     ap.add_argument("--subsets", type=int, default=0, help="the loop's subsets (0: its default)")
     ap.add_argument("--bare", action="store_true",
                     help="also time ours without feature passes (the guides' cost)")
+    ap.add_argument("--method", default="uniform", choices=sorted(METHODS),
+                    help="ours' method; auto and oidn-uniform are timed against Cycles' own OIDN")
     ap.add_argument("--out")
     args = ap.parse_args(argv)
+    denoise = METHODS[args.method][2]
     clock = Clock()
     rows = []
     for name in args.scenes.split(","):
@@ -149,16 +163,18 @@ def main(argv=None):
             p, o, bare = [], [], []
             gaps = []
             for _ in range(args.repeats):
-                p.append(plain(scene, vl, args.spp, args.seed, clock))
-                o.append(ours(scene, vl, args.spp, args.seed, args.subsets, clock))
+                p.append(plain(scene, vl, args.spp, args.seed, clock, denoise))
+                o.append(ours(scene, vl, args.spp, args.seed, args.subsets, clock, method=args.method))
                 gaps.append(image_gap(o[-1].pop("image"), p[-1].pop("image")))
                 if args.bare:
-                    bare.append(ours(scene, vl, args.spp, args.seed, args.subsets, clock, passes=()))
+                    bare.append(ours(scene, vl, args.spp, args.seed, args.subsets, clock, passes=(),
+                                     method=args.method))
                     bare[-1].pop("image")
             arms = (("plain", p), ("ours", o)) + ((("bare", bare),) if bare else ())
             med = {side: {k: statistics.median(r[k] for r in runs) for k in runs[0]} for side, runs in arms}
             w, h = ex.full_size(scene)
-            row = {"scene": name, "width": w, "height": h, "spp": args.spp, "repeats": args.repeats,
+            row = {"scene": name, "method": args.method, "width": w, "height": h, "spp": args.spp,
+                   "repeats": args.repeats,
                    "ratio": med["plain"]["wall"] / med["ours"]["wall"],
                    "ratios": [a["wall"] / b["wall"] for a, b in zip(p, o)], "seed": args.seed,
                    "max_abs_diff": max(g["max_abs_diff"] for g in gaps),
