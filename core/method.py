@@ -56,12 +56,8 @@ class Method(Protocol):
     SAMPLER_USES_RESULT : bool; False: ``sample_map`` ignores ``result`` and
         the loop does not reconstruct between iterations (AWR, var).
 
-    Optional members, read with ``getattr`` (as ``methods.method_for``):
-    ``reads_groups(params) -> bool``, False for a method whose reconstruction
-    and error read no statistic of the separate sample groups beyond the
-    initial pass's (then the loop renders a uniform round after the initial
-    pass, auto's choice, as one render instead of equal subsets; default
-    True); ``map_result(buf, params) -> MethodResult``, the reconstruction the loop
+    One optional member, read with ``getattr`` (as ``methods.method_for``):
+    ``map_result(buf, params) -> MethodResult``, the reconstruction the loop
     hands ``sample_map`` between iterations when it may be cheaper than the
     final one (oidn: its error estimate without the albedo / normal
     prefilter; lp, rhf: without the kept noise of the error map); without it

@@ -838,15 +838,6 @@ class _Uniform:
     def sample_map(buf, result, budget, params=None, state=None) -> np.ndarray:
         return allocate(np.ones(buf.shape), budget)
 
-    @staticmethod
-    def reads_groups(params=None) -> bool:
-        """Without the error estimate: one OIDN call on the mean, its error
-        the variance of the mean (unbiased for groups of any size), the
-        noiseless pixels found from the initial groups, no guard in auto:
-        nothing reads how the rest of the budget was grouped."""
-        p = params if isinstance(params, Params) else params_from_dict(Params, params or {})
-        return bool(p.error_estimate)
-
 
 #: the uniform variant as a Method object (module constants cannot follow a
 #: parameter): pass it to ``AdaptiveRun(..., method=UNIFORM)``

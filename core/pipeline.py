@@ -663,12 +663,9 @@ class AdaptiveRun:
         if (uniform or not self.method.ADAPTIVE) and budget >= self.pixels:
             # uniform sampling after the initial pass (auto's choice, a target
             # error): whole spp as sample subsets like the initial pass, so the
-            # variance estimate keeps groups of comparable size; one render
-            # where the method reads no group statistic (Method.reads_groups)
+            # variance estimate keeps groups of comparable size
             spp = budget // self.pixels
-            reads = getattr(self.method, "reads_groups", None)  # optional member, see core.method
-            subsets = self.subsets if reads is None or reads(self.params) else 1
-            tasks = subset_tasks(self.width, self.height, spp, subsets, self.options.frame)
+            tasks = subset_tasks(self.width, self.height, spp, self.subsets, self.options.frame)
             covered = np.full((self.height, self.width), spp, np.int64)
             counts = covered.copy()
         else:

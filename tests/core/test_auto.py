@@ -277,24 +277,6 @@ def test_uniform_sampling_after_the_choice_renders_sample_subsets():
     assert [t.offset for t in ex.tasks] == [0, 1, 2, 3, 4, 6, 8, 10]
 
 
-def test_an_oidn_uniform_choice_renders_the_rest_as_one_render():
-    """uniform + OIDN without its error estimate reads no statistic of the
-    later groups (``reads_groups``), so the rest of the budget after the
-    initial pass is one render (fewer renders: each costs Cycles a fixed
-    time); with the error estimate (a target error) it stays equal subsets."""
-    from core import oidn
-    truth, feats = _scene(24, 24)
-    ex = FakeExecutor(truth, feats)
-    run = _run(ex, spp=12, params={"candidates": "oidn", "sampling": "uniform"})
-    assert run.method.NAME == "oidn-uniform" and run.params.error_estimate is False
-    assert [t.samples for t in ex.tasks] == [1, 1, 1, 1, 8]
-    assert [t.offset for t in ex.tasks] == [0, 1, 2, 3, 4]
-    np.testing.assert_array_equal(run.buffers.n, 12)
-    np.testing.assert_array_equal(run.buffers.k, 5)
-    assert oidn.UNIFORM.reads_groups({"adaptive": False, "error_estimate": True})
-    assert not oidn.UNIFORM.reads_groups({"adaptive": False, "error_estimate": False})
-
-
 def test_an_oidn_choice_runs_without_the_consistency_guard(monkeypatch):
     from core import pipeline
     seen = []
