@@ -20,7 +20,6 @@ import os
 import shutil
 import sys
 import tempfile
-import threading
 
 import bpy
 import numpy as np
@@ -28,6 +27,7 @@ import numpy as np
 from ..core import cryptomatte
 from ..core import io as imageio
 from ..core import regions
+from ..core.pipeline import Work
 
 #: feature name -> (EXR pass names summed, how to enable it)
 PASS_SOURCES = {
@@ -246,33 +246,6 @@ def read_still(path: str, layer: str, what: str = "", attributes: dict | None = 
     return passes
 
 
-class PendingRead:
-    """A rendered task's passes, read back from its file on the first call
-    (from any thread, once; later calls return the same arrays or raise the
-    same error).  ``done(self)`` is called once the read has ended."""
-
-    def __init__(self, read, done=None):
-        self._read, self._done = read, done
-        self._lock = threading.Lock()
-        self._value = None
-        self._error: BaseException | None = None
-
-    def __call__(self):
-        with self._lock:
-            if self._read is not None:
-                try:
-                    self._value = self._read()
-                except BaseException as exc:  # raised to every caller
-                    self._error = exc
-                finally:
-                    self._read = None
-                    if self._done is not None:
-                        self._done(self)
-        if self._error is not None:
-            raise self._error
-        return self._value
-
-
 #: view-layer switch -> Cryptomatte pass base name (layers <base>00, 01, ...:
 #: R=id0, G=cov0, B=id1, A=cov1; same names under 4.2, 4.5 and 5.0, which
 #: write them in every border render, also with sample_offset > 0, with
@@ -338,8 +311,7 @@ class CyclesExecutor:
         self.tmpdir = tmpdir or tempfile.mkdtemp(prefix="cycles-adaptive-")
         self.guard = SettingsGuard()
         self.renders = 0
-        self._unread: set = set()        # render_deferred's reads not yet done
-        self._unread_lock = threading.Lock()
+        self._reads: list = []           # render_deferred's reads (Works), some maybe not run yet
         self.hold = None             # hold_samples_at: the run's one final count
         self.pattern = None          # the sampling pattern the renders use (after entering)
         self.initial_pattern = None  # the pattern before release_hold, if it was called
@@ -395,14 +367,11 @@ class CyclesExecutor:
 
     def close(self):
         # a deferred read not yet done (a merge still to come): read now,
-        # before the files go; its consumer gets the arrays (or the error)
-        with self._unread_lock:
-            unread = list(self._unread)
-        for pending in unread:
-            try:
-                pending()
-            except Exception:  # noqa: BLE001 - kept by the PendingRead for its consumer
-                pass
+        # before the files go; its consumer gets the arrays (or the error,
+        # which the Work keeps)
+        for work in self._reads:
+            work.run()
+        self._reads = []
         self.guard.restore()
         frame = getattr(self, "_frame", None)
         if frame is not None and alive(self.scene) and self.scene.frame_current != frame:
@@ -499,10 +468,11 @@ class CyclesExecutor:
         """Render one task; returns (rgba (h, w, 4) float64, features dict)."""
         return self.render_deferred(task)()
 
-    def render_deferred(self, task) -> PendingRead:
+    def render_deferred(self, task):
         """Render one task (main thread) and leave its file to be read back
-        later: a :class:`PendingRead` whose call returns what :meth:`render`
-        does.  The loop calls it on the merge's thread, so reading and
+        later: a call (``Work.result`` of :class:`core.pipeline.Work`: read
+        once, from any thread, its error kept for every caller) that returns
+        what :meth:`render` does.  The loop calls it on the merge's thread, so reading and
         converting the passes (~0.07 s per 0.6-megapixel render with the
         guides) hides behind the next render; :meth:`close` reads what is
         still unread before deleting the files."""
@@ -525,15 +495,10 @@ class CyclesExecutor:
         render_file(s, self.view_layer, path, f"for {task}")
         # what the read needs from Blender's data, taken now (the read may run on another thread)
         layer, features, bases = self.view_layer.name, self.features, cryptomatte_bases(self.view_layer)
-        pending = PendingRead(lambda: _read_task(path, layer, task, (y1 - y0, x1 - x0), features, bases),
-                              self._read_done)
-        with self._unread_lock:
-            self._unread.add(pending)
-        return pending
-
-    def _read_done(self, pending) -> None:
-        with self._unread_lock:
-            self._unread.discard(pending)
+        work = Work(lambda: _read_task(path, layer, task, (y1 - y0, x1 - x0), features, bases),
+                    f"reading {os.path.basename(path)}")
+        self._reads = [w for w in self._reads if not w.done] + [work]
+        return work.result
 
     def camera_info(self, frame: int) -> dict:
         """Camera of ``frame`` as numpy arrays (for reprojection):

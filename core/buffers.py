@@ -469,23 +469,20 @@ class Buffers:
             # ~20x faster than the (H, W) axes of an interleaved array); a
             # non-finite value anywhere makes lo or hi non-finite: then masked
             planes = [st.mean[..., c] for c in range(st.mean.shape[-1])]
+            lo = hi = None
             if every and planes:
                 lo, hi = np.array([p.min() for p in planes]), np.array([p.max() for p in planes])
-                if np.isfinite(lo).all() and np.isfinite(hi).all():
-                    if np.all(hi - lo <= rtol * (1.0 + max(np.abs(lo).max(), np.abs(hi).max()))):
-                        out.append(name)
+            if lo is None or not (np.isfinite(lo).all() and np.isfinite(hi).all()):
+                ok = has & np.isfinite(st.mean)
+                counted = ok.any(axis=(0, 1))
+                if not counted.any():
+                    out.append(name)
                     continue
-            ok = has & np.isfinite(st.mean)
-            counted = ok.any(axis=(0, 1))
-            if not counted.any():
-                out.append(name)
-                continue
-            if not counted.all():  # a channel with no finite value: its range is unknown
-                continue
-            lo = np.min(st.mean, axis=(0, 1), where=ok, initial=np.inf)
-            hi = np.max(st.mean, axis=(0, 1), where=ok, initial=-np.inf)
-            scale = 1.0 + max(float(np.max(np.abs(lo))), float(np.max(np.abs(hi))))
-            if np.all(hi - lo <= rtol * scale):
+                if not counted.all():  # a channel with no finite value: its range is unknown
+                    continue
+                lo = np.min(st.mean, axis=(0, 1), where=ok, initial=np.inf)
+                hi = np.max(st.mean, axis=(0, 1), where=ok, initial=-np.inf)
+            if np.all(hi - lo <= rtol * (1.0 + max(np.abs(lo).max(), np.abs(hi).max()))):
                 out.append(name)
         return tuple(out)
 
